@@ -1,0 +1,13 @@
+"""Data files of the tapecell cell (cell TOML, UR5e model), shipped as package data.
+
+Installed, this folder is the package ``tapecell_assets``; in a source checkout it is the
+top-level ``assets/`` folder. ``asset_path`` finds a file in either case.
+"""
+from pathlib import Path
+
+ASSETS_DIR = Path(__file__).resolve().parent
+
+
+def asset_path(name: str) -> Path:
+    """Absolute path of a bundled asset file, e.g. ``asset_path("cell.toml")``."""
+    return ASSETS_DIR / name

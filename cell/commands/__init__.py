@@ -1,0 +1,1 @@
+"""Subcommands of ``tapecell``: one module each, exposing ``register(subparsers)``."""
