@@ -1,0 +1,106 @@
+"""``tapecell estimate``: fit the tape model to one or more capture directories."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from estimator.capture import Capture, load_capture
+from estimator.errors import TapecellError
+from estimator.io import atomic_write_json, to_json
+from estimator.metrics import errors
+
+HELP = """Fit the tape model to capture directories (tape-capture/1).
+
+One capture without --out prints the tape-estimate/1 JSON on stdout. With --out DIR each
+capture's estimate is written to DIR/<capture folder name>.json and a summary line per
+capture goes to stderr (tip/node/normal errors where the capture holds truth.json).
+A capture that fails to load reports one error line; the others still run, and the exit
+status is 2 if any failed."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("estimate", help="fit the tape to capture directories",
+                       description=HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("captures", nargs="+", type=Path, metavar="CAPTURE_DIR")
+    p.add_argument("--out", type=Path, metavar="DIR", help="write DIR/<name>.json per capture")
+    p.add_argument("--method", choices=["default", "paper"], default="default",
+                   help="default: ours (fast, robust); paper: the paper's sequential Nelder-Mead")
+    p.add_argument("--rrd", type=Path, metavar="FILE", help="write a rerun recording of the fit(s)")
+    p.add_argument("--segment", action="append", default=[], metavar="KEY=VALUE",
+                   help="segmentation parameter for captures holding colour images "
+                        "(hue_min, hue_max, sat_min, val_min, open_px, close_px, min_area_px)")
+    p.set_defaults(func=run)
+
+
+def _segmentation_overrides(items: list[str]) -> dict[str, int]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise TapecellError(f"--segment {item!r}: expected KEY=VALUE")
+        try:
+            out[key.strip()] = int(value)
+        except ValueError:
+            raise TapecellError(f"--segment {item!r}: value must be an integer") from None
+    return out
+
+
+HEADER = f"{'capture':<24} {'cams':>4} {'cost':>7} {'ms':>7} {'tip mm':>7} {'node mm':>8} {'normal':>7}"
+
+
+def summary_line(name: str, capture: Capture, est) -> str:
+    line = f"{name:<24} {len(capture.views):>4} {est.cost:>7.4f} {est.time_s * 1e3:>7.1f}"
+    if capture.truth is not None:
+        e = errors(est.nodes, est.tip_rotation, capture.truth)
+        line += f" {e.tip_m * 1e3:>7.2f} {e.node_max_m * 1e3:>8.2f} {e.normal_deg:>6.1f}°"
+    return line
+
+
+def run(args: argparse.Namespace) -> int:
+    from estimator import estimate  # the fitting code is heavy: load it only when needed
+
+    seg = _segmentation_overrides(args.segment)
+    single = len(args.captures) == 1 and args.out is None
+    stream = None
+    if args.rrd is not None:
+        from cell.recording import close_recording, open_recording
+        stream = open_recording(args.rrd, app_id="tapecell-estimate")
+    failed = 0
+    try:
+        if not single:
+            print(HEADER, file=sys.stderr)
+        for path in args.captures:
+            name = path.resolve().name
+            try:
+                capture = load_capture(path, seg)
+                callback = None
+                if stream is not None:
+                    from cell.recording import fit_logger
+                    callback = fit_logger(stream, capture, prefix=None if single else name)
+                est = estimate(capture, method=args.method, callback=callback)
+                if stream is not None:
+                    from cell.recording import log_fit_result
+                    log_fit_result(stream, capture, est, prefix=None if single else name)
+            except TapecellError as e:
+                if single:
+                    raise
+                failed += 1
+                print(f"{name:<24} error: {e}", file=sys.stderr)
+                continue
+            doc = est.to_json()
+            if args.out is not None:
+                atomic_write_json(args.out / f"{name}.json", doc)
+            elif single:
+                print(to_json(doc))
+            else:
+                print(to_json(doc, indent=None))
+            if not single:
+                print(summary_line(name, capture, est), file=sys.stderr)
+    finally:
+        if stream is not None:
+            close_recording(stream)
+    if failed:
+        print(f"{failed} of {len(args.captures)} captures failed", file=sys.stderr)
+        return 2
+    return 0
