@@ -1,0 +1,191 @@
+"""Model silhouettes and the paper's silhouette cost (eq. 5-7, 11).
+
+The model's silhouette in a camera is the union of its plates' projected quads, filled
+with sub-pixel vertices (``cv2.fillPoly`` with ``shift``). The cost of one view is the
+number of pixels where model and observed masks differ (exclusive-OR, eq. 5-6) divided by
+the observed object's area (eq. 7); views combine as the root of the sum of squares
+(eq. 11). Pixels marked in a view's ``ignore`` mask count in neither term.
+
+Rendering works in a region of interest (ROI) of each image. Model area that falls
+outside the ROI is charged analytically (quad area minus its part inside the ROI), so a
+cropped cost equals the full-image cost as long as the observed tape lies inside the ROI.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from .capture import View
+from .geometry import Camera
+from .tape import TapeShape
+
+SHIFT = 4
+"""Fixed-point bits of polygon vertices: vertices land on a 1/16 px grid."""
+_ONE = 1 << SHIFT
+
+
+@dataclass(frozen=True, eq=False)
+class ViewTarget:
+    """One camera's observed silhouette, cropped and ready for repeated cost evaluation.
+
+    camera: the camera.
+    x0, y0: top-left pixel of the ROI in the full image [px].
+    observed: (h, w) uint8 ROI of the observed mask (1 tape, 0 background), ignored pixels 0.
+    valid: (h, w) uint8, 1 where a pixel counts (not ignored), or None when all count.
+    area: observed object's area r_d in counted pixels (eq. 7), at least 1.
+    """
+
+    camera: Camera
+    x0: int
+    y0: int
+    observed: np.ndarray
+    valid: np.ndarray | None
+    area: float
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.observed.shape  # type: ignore[return-value]
+
+
+def roi_of(mask: np.ndarray, margin: int) -> tuple[int, int, int, int]:
+    """Bounding box (x0, y0, x1, y1) of ``mask``'s pixels grown by ``margin``, clipped."""
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+    if xs.size == 0:
+        return 0, 0, w, h
+    return (max(0, int(xs.min()) - margin), max(0, int(ys.min()) - margin),
+            min(w, int(xs.max()) + margin + 1), min(h, int(ys.max()) + margin + 1))
+
+
+def make_target(view: View, mask: np.ndarray | None = None,
+                roi: tuple[int, int, int, int] | None = None) -> ViewTarget:
+    """Prepare ``view`` (or ``mask`` in its place) for cost evaluation in ``roi``.
+
+    ``roi`` defaults to the whole image (the paper's setting).
+    """
+    mask = view.mask if mask is None else mask
+    h, w = mask.shape
+    x0, y0, x1, y1 = roi if roi is not None else (0, 0, w, h)
+    observed = mask[y0:y1, x0:x1].astype(np.uint8)
+    valid = None
+    if view.ignore is not None:
+        valid = (~view.ignore[y0:y1, x0:x1]).astype(np.uint8)
+        observed &= valid
+    area = max(1.0, float(cv2.countNonZero(observed)))
+    return ViewTarget(view.camera, x0, y0, np.ascontiguousarray(observed), valid, area)
+
+
+def project_quads(camera: Camera, quads: np.ndarray) -> np.ndarray:
+    """(m, 4, 3) world quads -> (m, 4, 2) pixel coordinates (lens distortion applied)."""
+    return camera.project(quads.reshape(-1, 3)).reshape(-1, 4, 2)
+
+
+def render(quads_px: np.ndarray, shape: tuple[int, int], x0: int = 0, y0: int = 0,
+           out: np.ndarray | None = None) -> np.ndarray:
+    """Fill (m, 4, 2) pixel quads into a (h, w) uint8 image whose top-left pixel is (x0, y0).
+
+    Each quad is filled on its own: one ``fillPoly`` call with several polygons would
+    cancel their overlaps (even-odd rule), while the silhouette is their union.
+    """
+    img = np.zeros(shape, np.uint8) if out is None else out
+    if out is not None:
+        img[:] = 0
+    pts = quads_px - np.array([x0, y0], float)
+    if not np.all(np.isfinite(pts)):
+        return img
+    # Keep fixed-point vertices inside int32 even for points far outside the image.
+    fixed = np.rint(np.clip(pts, -1e5, 1e5) * _ONE).astype(np.int32)
+    for q in fixed:
+        cv2.fillPoly(img, [q], 1, cv2.LINE_8, SHIFT)
+    return img
+
+
+def _polygon_area(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def outside_area(quads_px: np.ndarray, x0: int, y0: int, w: int, h: int) -> float:
+    """Approximate model area [px] of ``quads_px`` lying outside the ROI rectangle.
+
+    Zero when every vertex is inside. Quads are treated as convex polygons; overlaps
+    between quads outside the ROI are counted twice, which only matters far from the
+    optimum where it makes the cost a little steeper.
+    """
+    lo = np.array([x0 - 0.5, y0 - 0.5])
+    hi = np.array([x0 + w - 0.5, y0 + h - 0.5])
+    if np.all((quads_px >= lo) & (quads_px <= hi)):
+        return 0.0
+    rect = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]], np.float32)
+    total = 0.0
+    for q in quads_px:
+        if np.all((q >= lo) & (q <= hi)):
+            continue
+        if not np.all(np.isfinite(q)):
+            return float(w * h)  # behind the camera: as bad as filling the whole ROI
+        qf = np.ascontiguousarray(q, np.float32)
+        if _signed_area(qf) < 0:
+            qf = qf[::-1].copy()
+        inside, _ = cv2.intersectConvexConvex(qf, rect)
+        total += max(0.0, _polygon_area(q) - max(0.0, float(inside)))
+    return total
+
+
+def _signed_area(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+class CostEvaluator:
+    """Evaluates eq. 7 per view and eq. 11 overall for plate quads, reusing buffers."""
+
+    def __init__(self, targets: Sequence[ViewTarget]):
+        self.targets = list(targets)
+        self._model = [np.zeros(t.shape, np.uint8) for t in self.targets]
+        self._diff = [np.zeros(t.shape, np.uint8) for t in self.targets]
+        self.evaluations = 0
+
+    def view_costs(self, quads_world: np.ndarray) -> np.ndarray:
+        """(m, 4, 3) world quads -> (views,) normalised XOR costs s/r_d (eq. 5-7)."""
+        self.evaluations += 1
+        out = np.empty(len(self.targets))
+        for k, t in enumerate(self.targets):
+            px = project_quads(t.camera, quads_world)
+            out[k] = self._view_xor(k, px) / t.area
+        return out
+
+    def _view_xor(self, k: int, quads_px: np.ndarray) -> float:
+        t = self.targets[k]
+        h, w = t.shape
+        model = render(quads_px, (h, w), t.x0, t.y0, out=self._model[k])
+        if t.valid is not None:
+            cv2.bitwise_and(model, t.valid, dst=model)
+        diff = cv2.bitwise_xor(model, t.observed, dst=self._diff[k])
+        return float(cv2.countNonZero(diff)) + outside_area(quads_px, t.x0, t.y0, w, h)
+
+    def cost(self, quads_world: np.ndarray) -> float:
+        """Combined cost over cameras (eq. 11)."""
+        return combine(self.view_costs(quads_world))
+
+    def model_masks(self, quads_world: np.ndarray) -> list[np.ndarray]:
+        """The model silhouettes (ROI-sized uint8 images) for the given quads."""
+        return [render(project_quads(t.camera, quads_world), t.shape, t.x0, t.y0) for t in self.targets]
+
+
+def combine(view_costs: np.ndarray) -> float:
+    """Eq. 11: root of the sum of squared per-view costs."""
+    return float(np.sqrt(np.sum(np.square(view_costs))))
+
+
+def shape_quads(shape: TapeShape) -> np.ndarray:
+    """(n, 4, 3) plate quads of a tape shape."""
+    return shape.quads()
+
+
+def render_view(camera: Camera, shape: TapeShape) -> np.ndarray:
+    """Full-image bool silhouette of ``shape`` in ``camera``."""
+    px = project_quads(camera, shape.quads())
+    return render(px, (camera.height, camera.width)).astype(bool)
