@@ -1,0 +1,468 @@
+"""Rerun recordings of the cell: cameras, masks, fits, the arm, plans, grasps, calibration.
+
+Every function takes the :class:`rerun.RecordingStream` to log to; nothing here touches
+rerun's global recording. One entity tree (paths relative to the recording root):
+
+    world/cameras/<cam>                 Transform3D world_from_camera (static)
+    world/cameras/<cam>/image           Pinhole K, resolution (static; RDF = OpenCV axes)
+    world/cameras/<cam>/image/rgb       Image, the colour frame
+    world/cameras/<cam>/image/mask      SegmentationImage, observed silhouette (class 1)
+    world/cameras/<cam>/image/model     SegmentationImage, model silhouette (class 2)
+    world/cameras/<cam>/image/ignore    SegmentationImage, pixels that do not count (class 3)
+    world/cameras/<cam>/image/cross     Points2D, calibration target detections
+    world/cameras/<cam>/image/cross_reprojected   Points2D, the same points reprojected
+    world/tape/estimate                 LineStrips3D centre line of the fit
+    world/tape/estimate/nodes           Points3D P_C[0..n]
+    world/tape/estimate/plates          Mesh3D of the plate quads
+    world/tape/estimate/outline         LineStrips3D, one closed outline per plate
+    world/tape/tip                      Arrows3D tip frame (trunk, left, normal) of the fit
+    world/tape/truth                    LineStrips3D true centre line
+    world/tape/truth/tip                Arrows3D true tip frame
+    world/arm/flange                    Transform3D world_from_flange + TransformAxes3D
+    world/arm/links                     LineStrips3D through link origins
+    world/arm/links/origins             Points3D link origins
+    world/arm/links/axes                Arrows3D link frames
+    world/plan/waypoints                Points3D, labelled by waypoint name
+    world/plan/path                     LineStrips3D through the waypoints in order
+    world/plan/axes                     Arrows3D waypoint frames
+    calibration/poses                   Points3D target points of one robot pose
+    calibration/rms_px/<cam>            Scalars reprojection RMS [px]
+    estimator/cost                      Scalars per optimiser iteration
+    estimator/view_cost/<cam>           Scalars final cost of each view
+    arm/joints                          Scalars, one series per joint [rad]
+    gripper/opening                     Scalars opening [m]
+    gripper/events                      TextLog of gripper actions
+    grasp/result                        TextLog summary of a grasp
+    grasp/<key>                         Scalars of each numeric result field
+
+Timelines: ``iteration`` (sequence) for the estimator's cost, ``calib_pose`` (sequence)
+for calibration poses; both are cleared again after use so they do not stamp unrelated
+entities. ``sim_time`` (duration, s) is set by the arm and gripper loggers and stays set,
+so what is logged next (views, estimates) lands at the current cell time.
+
+Pixels: OpenCV puts the centre of the top-left pixel at (0, 0), rerun at (0.5, 0.5); the
+conversion happens once, here (``_rerun_K``, ``_rerun_pixels``). Pinhole holds no lens
+distortion: 2-D overlays are logged in distorted pixel coordinates and stay right.
+
+The file is written to a hidden temporary sibling and renamed into place by
+:func:`close_recording`, so a crashed run leaves no half-written ``.rrd`` behind.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import os
+import uuid
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Mapping, Sequence
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from estimator.capture import Capture, Truth
+from estimator.geometry import Camera
+from estimator.result import Estimate
+from estimator.silhouette import render_view
+from estimator.tape import TapeSpec, forward_kinematics
+
+# Class ids of the segmentation overlays (AnnotationContext on each camera's image).
+CLASS_MASK, CLASS_MODEL, CLASS_IGNORE = 1, 2, 3
+_ANNOTATIONS = [
+    (CLASS_MASK, "observed", (255, 200, 0)),
+    (CLASS_MODEL, "model", (0, 160, 255)),
+    (CLASS_IGNORE, "ignored", (120, 120, 120)),
+]
+_AXIS_COLORS = np.array([[230, 40, 40], [40, 200, 40], [40, 80, 230]], dtype=np.uint8)
+FRAME_AXIS_LENGTH_M = 0.01  # tip/waypoint frame arrows: 10 mm, the scale of a plate
+
+
+class RecordingFile(rr.RecordingStream):
+    """A recording stream that writes an ``.rrd`` file atomically.
+
+    path: the final file; temp_path: the hidden sibling written until :func:`close_recording`.
+    """
+
+    def __init__(self, path: Path, temp_path: Path, application_id: str) -> None:
+        super().__init__(application_id, recording_id=uuid.uuid4())
+        self.path = path
+        self.temp_path = temp_path
+
+
+# ---------------------------------------------------------------------------- file
+
+
+def default_blueprint(camera_names: Sequence[str] = ()) -> rrb.Blueprint:
+    """The layout: 3-D world on the left; camera images, cost and arm plots on the right."""
+    cams = [rrb.Spatial2DView(origin=f"world/cameras/{n}/image", name=n) for n in camera_names]
+    plots = rrb.Tabs(
+        rrb.TimeSeriesView(origin="estimator", name="estimator cost"),
+        rrb.TimeSeriesView(origin="arm", name="joints"),
+        rrb.TimeSeriesView(origin="gripper", name="gripper"),
+        rrb.TimeSeriesView(origin="grasp", name="grasp"),
+        rrb.TimeSeriesView(origin="calibration", name="calibration"),
+    )
+    logs = rrb.TextLogView(origin="/", name="events")
+    right = [rrb.Grid(*cams, name="cameras")] if cams else []
+    right += [plots, logs]
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="world"),
+            rrb.Vertical(*right),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=True,
+    )
+
+
+def open_recording(path: str | os.PathLike, app_id: str = "tapecell",
+                   camera_names: Sequence[str] = ()) -> RecordingFile:
+    """A stream saving to ``path`` (``.rrd``) with the default blueprint.
+
+    The data go to a temporary sibling until :func:`close_recording` renames it into place.
+    ``camera_names`` lay out one 2-D view per camera; :func:`log_cameras` updates the
+    layout with the cameras it is given.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    # A unique hidden name rather than mkstemp, so the file gets the usual permissions.
+    tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
+    stream = RecordingFile(path, tmp, app_id)
+    stream.save(tmp, default_blueprint=default_blueprint(camera_names))
+    return stream
+
+
+def close_recording(stream: rr.RecordingStream) -> None:
+    """Flush and close the stream; a :class:`RecordingFile` is renamed into place."""
+    stream.flush()
+    stream.disconnect()
+    if isinstance(stream, RecordingFile) and stream.temp_path.exists():
+        os.replace(stream.temp_path, stream.path)
+
+
+def discard_recording(stream: rr.RecordingStream) -> None:
+    """Close the stream and remove its temporary file (a failed run writes nothing)."""
+    stream.disconnect()
+    if isinstance(stream, RecordingFile):
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(stream.temp_path)
+
+
+@contextlib.contextmanager
+def recording(path: str | os.PathLike, app_id: str = "tapecell",
+              camera_names: Sequence[str] = ()) -> Iterator[RecordingFile]:
+    """``with recording(path) as stream:`` -- the file appears only if the block succeeds."""
+    stream = open_recording(path, app_id, camera_names)
+    try:
+        yield stream
+    except BaseException:
+        discard_recording(stream)
+        raise
+    close_recording(stream)
+
+
+# ---------------------------------------------------------------------------- helpers
+
+
+def _rerun_K(K: np.ndarray) -> np.ndarray:
+    """OpenCV intrinsics -> rerun's (pixel centres at +0.5)."""
+    K = np.array(K, dtype=float)
+    K[0, 2] += 0.5
+    K[1, 2] += 0.5
+    return K
+
+
+def _rerun_pixels(uv: np.ndarray) -> np.ndarray:
+    return np.asarray(uv, dtype=float).reshape(-1, 2) + 0.5
+
+
+def _axes_arrows(origins: np.ndarray, rotations: np.ndarray, length: float) -> rr.Arrows3D:
+    """Arrows3D of frames: (N, 3) origins, (N, 3, 3) world_from_frame rotations."""
+    origins = np.asarray(origins, float).reshape(-1, 3)
+    rotations = np.asarray(rotations, float).reshape(-1, 3, 3)
+    vectors = length * np.transpose(rotations, (0, 2, 1)).reshape(-1, 3)  # columns x, y, z
+    return rr.Arrows3D(vectors=vectors, origins=np.repeat(origins, 3, axis=0),
+                       colors=np.tile(_AXIS_COLORS, (len(origins), 1)))
+
+
+def _image_path(camera_name: str) -> str:
+    return f"world/cameras/{camera_name}/image"
+
+
+def _class_image(mask: np.ndarray, class_id: int) -> np.ndarray:
+    return np.asarray(mask, dtype=bool).astype(np.uint8) * np.uint8(class_id)
+
+
+# ---------------------------------------------------------------------------- cameras
+
+
+def log_cameras(stream: rr.RecordingStream, cameras: Iterable[Camera]) -> None:
+    """Each camera's pose, intrinsics and overlay colours (static), and a layout showing them."""
+    cameras = list(cameras)
+    for cam in cameras:
+        stream.log(f"world/cameras/{cam.name}",
+                   rr.Transform3D(translation=cam.center, mat3x3=cam.R.T), static=True)
+        stream.log(_image_path(cam.name),
+                   rr.Pinhole(image_from_camera=_rerun_K(cam.K), resolution=[cam.width, cam.height],
+                              camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.05),
+                   rr.AnnotationContext(_ANNOTATIONS), static=True)
+    stream.send_blueprint(default_blueprint([c.name for c in cameras]), make_active=False,
+                          make_default=True)
+
+
+def log_view(stream: rr.RecordingStream, camera: Camera, mask: np.ndarray,
+             image: np.ndarray | None = None, model_mask: np.ndarray | None = None,
+             ignore: np.ndarray | None = None) -> None:
+    """One camera's frame: RGB image, observed mask, model silhouette and ignored pixels.
+
+    mask, model_mask, ignore: (H, W) bool; image: (H, W, 3) uint8 RGB.
+    """
+    base = _image_path(camera.name)
+    if image is not None:
+        stream.log(f"{base}/rgb", rr.Image(np.asarray(image, np.uint8), color_model="RGB",
+                                           draw_order=-10.0))
+    stream.log(f"{base}/mask", rr.SegmentationImage(_class_image(mask, CLASS_MASK),
+                                                    opacity=0.6, draw_order=0.0))
+    if model_mask is not None:
+        stream.log(f"{base}/model", rr.SegmentationImage(_class_image(model_mask, CLASS_MODEL),
+                                                         opacity=0.5, draw_order=1.0))
+    if ignore is not None:
+        stream.log(f"{base}/ignore", rr.SegmentationImage(_class_image(ignore, CLASS_IGNORE),
+                                                          opacity=0.4, draw_order=2.0))
+
+
+def model_silhouette(camera: Camera, spec: TapeSpec, angles: np.ndarray) -> np.ndarray:
+    """(H, W) bool silhouette of the plate model for (n, 3) ``angles`` [rad] seen by ``camera``.
+
+    The estimator's own renderer, so the overlay shows exactly what its cost compares.
+    """
+    return render_view(camera, forward_kinematics(spec, angles))
+
+
+# ---------------------------------------------------------------------------- tape
+
+
+def _log_tape_shape(stream: rr.RecordingStream, base: str, spec: TapeSpec,
+                    angles: np.ndarray) -> None:
+    shape = forward_kinematics(spec, angles)
+    quads = shape.quads()
+    stream.log(base, rr.LineStrips3D([shape.nodes], radii=0.0004, colors=[[0, 160, 255]]))
+    stream.log(f"{base}/nodes", rr.Points3D(shape.nodes, radii=0.0008, colors=[[0, 90, 200]]))
+    n = len(quads)
+    tri = np.concatenate([np.stack([4 * np.arange(n), 4 * np.arange(n) + 1, 4 * np.arange(n) + 2], 1),
+                          np.stack([4 * np.arange(n), 4 * np.arange(n) + 2, 4 * np.arange(n) + 3], 1)])
+    stream.log(f"{base}/plates", rr.Mesh3D(vertex_positions=quads.reshape(-1, 3),
+                                            triangle_indices=tri, albedo_factor=[0, 160, 255, 110]))
+    outlines = np.concatenate([quads, quads[:, :1]], axis=1)  # closed loops
+    stream.log(f"{base}/outline", rr.LineStrips3D(list(outlines), radii=0.0002,
+                                                  colors=[[0, 90, 200]]))
+
+
+def log_estimate(stream: rr.RecordingStream, estimate: Estimate, spec: TapeSpec,
+                 view_names: Sequence[str] | None = None) -> None:
+    """The fitted tape in 3-D (centre line, nodes, plates), its tip frame and view costs.
+
+    view_names: camera names in the order of ``estimate.view_costs`` (default view0..).
+    """
+    _log_tape_shape(stream, "world/tape/estimate", spec, estimate.angles)
+    stream.log("world/tape/tip", _axes_arrows(estimate.tip_position, estimate.tip_rotation,
+                                              FRAME_AXIS_LENGTH_M))
+    names = list(view_names) if view_names is not None else [
+        f"view{i}" for i in range(len(estimate.view_costs))]
+    for name, cost in zip(names, np.asarray(estimate.view_costs, float)):
+        stream.log(f"estimator/view_cost/{name}", rr.Scalars([cost]))
+    stream.log("estimator/final_cost", rr.Scalars([float(estimate.cost)]))
+
+
+def log_cost(stream: rr.RecordingStream, iteration: int, cost: float) -> None:
+    """The estimator's cost at one optimiser iteration (on the ``iteration`` timeline)."""
+    stream.set_time("iteration", sequence=int(iteration))
+    stream.log("estimator/cost", rr.Scalars([float(cost)]))
+    stream.disable_timeline("iteration")
+
+
+def log_cost_history(stream: rr.RecordingStream, history: Sequence[float]) -> None:
+    """A whole cost history at once (iterations 0..len-1), as one column."""
+    values = np.asarray(history, float).reshape(-1)
+    if values.size == 0:
+        return
+    stream.send_columns("estimator/cost",
+                        indexes=[rr.TimeColumn("iteration", sequence=np.arange(values.size))],
+                        columns=rr.Scalars.columns(scalars=values))
+
+
+def log_truth(stream: rr.RecordingStream, truth: Truth) -> None:
+    """The true centre line and tip frame (simulated captures)."""
+    stream.log("world/tape/truth", rr.LineStrips3D([truth.points], radii=0.0004,
+                                                   colors=[[40, 200, 40]]))
+    stream.log("world/tape/truth/tip", _axes_arrows(truth.tip_position, truth.tip_rotation,
+                                                    FRAME_AXIS_LENGTH_M))
+
+
+def log_fit(stream: rr.RecordingStream, capture: Capture, estimate: Estimate) -> None:
+    """Everything about one fit: cameras, each view with the model overlay, cost, tape, truth."""
+    log_cameras(stream, capture.cameras)
+    for view in capture.views:
+        log_view(stream, view.camera, view.mask, image=view.image,
+                 model_mask=model_silhouette(view.camera, capture.tape, estimate.angles),
+                 ignore=view.ignore)
+    log_cost_history(stream, estimate.history)
+    log_estimate(stream, estimate, capture.tape, [c.name for c in capture.cameras])
+    if capture.truth is not None:
+        log_truth(stream, capture.truth)
+
+
+# ---------------------------------------------------------------------------- arm, plan, grasp
+
+
+def set_sim_time(stream: rr.RecordingStream, t: float) -> None:
+    """Stamp what is logged next at cell time ``t`` [s]."""
+    stream.set_time("sim_time", duration=float(t))
+
+
+def log_arm_state(stream: rr.RecordingStream, t: float, flange_pose: np.ndarray,
+                  joints: Sequence[float], link_poses: Sequence[np.ndarray] | None = None) -> None:
+    """The arm at time ``t`` [s]: world_from_flange (4x4), joint angles [rad], link frames.
+
+    link_poses: world_from_link 4x4 poses, base first, drawn as a skeleton with axes.
+    """
+    set_sim_time(stream, t)
+    world_from_flange = np.asarray(flange_pose, float).reshape(4, 4)
+    stream.log("world/arm/flange",
+               rr.Transform3D(translation=world_from_flange[:3, 3], mat3x3=world_from_flange[:3, :3]),
+               rr.TransformAxes3D(0.05))
+    stream.log("arm/joints", rr.Scalars(np.asarray(joints, float).reshape(-1)))
+    if link_poses is not None and len(link_poses):
+        poses = np.asarray(link_poses, float).reshape(-1, 4, 4)
+        stream.log("world/arm/links", rr.LineStrips3D([poses[:, :3, 3]], radii=0.004,
+                                                      colors=[[160, 160, 170]]))
+        stream.log("world/arm/links/origins", rr.Points3D(poses[:, :3, 3], radii=0.006))
+        stream.log("world/arm/links/axes", _axes_arrows(poses[:, :3, 3], poses[:, :3, :3], 0.04))
+
+
+def log_joint_names(stream: rr.RecordingStream, names: Sequence[str]) -> None:
+    """Name the joint series of ``arm/joints`` (static)."""
+    stream.log("arm/joints", rr.SeriesLines(names=list(names)), static=True)
+
+
+def log_plan(stream: rr.RecordingStream, waypoints: Mapping[str, np.ndarray]) -> None:
+    """Named world_from_tool 4x4 waypoints, in the order they are visited."""
+    names = list(waypoints)
+    if not names:
+        return
+    poses = np.stack([np.asarray(waypoints[n], float).reshape(4, 4) for n in names])
+    origins = poses[:, :3, 3]
+    stream.log("world/plan/waypoints", rr.Points3D(origins, labels=names, radii=0.002,
+                                                   colors=[[255, 120, 0]]))
+    stream.log("world/plan/path", rr.LineStrips3D([origins], radii=0.0008, colors=[[255, 120, 0]]))
+    stream.log("world/plan/axes", _axes_arrows(origins, poses[:, :3, :3], FRAME_AXIS_LENGTH_M))
+
+
+def log_gripper(stream: rr.RecordingStream, t: float, opening_m: float,
+                event: str | None = None) -> None:
+    """Gripper opening [m] at time ``t`` [s], and the action taken then, if any."""
+    set_sim_time(stream, t)
+    stream.log("gripper/opening", rr.Scalars([float(opening_m)]))
+    if event:
+        stream.log("gripper/events", rr.TextLog(event, level="INFO"))
+
+
+def _as_mapping(result: Any) -> Mapping[str, Any]:
+    if dataclasses.is_dataclass(result) and not isinstance(result, type):
+        return dataclasses.asdict(result)
+    return result
+
+
+def log_result(stream: rr.RecordingStream, result: Any) -> None:
+    """A grasp result (mapping or dataclass): one summary line, and each number as a series.
+
+    A ``success`` field set to False makes the summary a warning.
+    """
+    fields = _as_mapping(result)
+    parts = []
+    for key, value in fields.items():
+        if isinstance(value, (bool, np.bool_)):
+            parts.append(f"{key}={bool(value)}")
+            stream.log(f"grasp/{key}", rr.Scalars([float(value)]))
+        elif isinstance(value, (int, float, np.integer, np.floating)):
+            parts.append(f"{key}={value:.6g}")
+            stream.log(f"grasp/{key}", rr.Scalars([float(value)]))
+        elif isinstance(value, (str, type(None))):
+            parts.append(f"{key}={value}")
+    level = "WARN" if fields.get("success") is False else "INFO"
+    stream.log("grasp/result", rr.TextLog(" ".join(parts), level=level))
+
+
+# ---------------------------------------------------------------------------- calibration
+
+
+def log_calibration_pose(stream: rr.RecordingStream, pose_index: int, points_world: np.ndarray,
+                         detections: Mapping[str, np.ndarray] | None = None,
+                         reprojections: Mapping[str, np.ndarray] | None = None) -> None:
+    """One calibration pose (``calib_pose`` timeline): target points in the world [m],
+    and per camera name the detected and reprojected pixels ((N, 2), OpenCV convention)."""
+    stream.set_time("calib_pose", sequence=int(pose_index))
+    stream.log("calibration/poses", rr.Points3D(np.asarray(points_world, float).reshape(-1, 3),
+                                                radii=0.001, colors=[[230, 0, 200]]))
+    for name, uv in (detections or {}).items():
+        stream.log(f"{_image_path(name)}/cross", rr.Points2D(_rerun_pixels(uv), radii=1.5,
+                                                             colors=[[255, 0, 0]]))
+    for name, uv in (reprojections or {}).items():
+        stream.log(f"{_image_path(name)}/cross_reprojected",
+                   rr.Points2D(_rerun_pixels(uv), radii=1.0, colors=[[0, 255, 0]]))
+    stream.disable_timeline("calib_pose")
+
+
+def log_calibration_result(stream: rr.RecordingStream, cameras: Iterable[Camera],
+                           per_pose_rms_px: Mapping[str, Sequence[float]] | None = None) -> None:
+    """Calibrated cameras (frusta via :func:`log_cameras`) and their residuals [px].
+
+    per_pose_rms_px: per camera name, the RMS residual of each pose (``calib_pose`` timeline).
+    """
+    cameras = list(cameras)
+    log_cameras(stream, cameras)
+    for cam in cameras:
+        if cam.rms_px is not None:
+            stream.log(f"calibration/rms_px/{cam.name}", rr.Scalars([float(cam.rms_px)]))
+    for name, values in (per_pose_rms_px or {}).items():
+        values = np.asarray(values, float).reshape(-1)
+        stream.send_columns(f"calibration/pose_rms_px/{name}",
+                            indexes=[rr.TimeColumn("calib_pose", sequence=np.arange(values.size))],
+                            columns=rr.Scalars.columns(scalars=values))
+
+
+# ---------------------------------------------------------------------------- reading back
+
+
+def read_recording(path: str | os.PathLike) -> dict[str, list[dict[str, Any]]]:
+    """An ``.rrd`` file's recording as ``{entity path: [row, ...]}`` (for tests and checks).
+
+    Entity paths lose their leading "/". Each row is one logged message: a dict of
+    component column ("Scalars:scalars", "Points3D:positions", ...) to its Python value,
+    and of each timeline it is stamped on ("iteration", "sim_time" in ns, ...) to its time;
+    static rows have no timelines. Rows are in logging order.
+    """
+    from rerun.chunk import RrdReader
+
+    rows: dict[str, list[tuple[bytes, dict[str, Any]]]] = {}
+    for chunk in RrdReader(str(path)).store().stream().to_chunks():
+        batch = chunk.to_record_batch()
+        entity = chunk.entity_path.lstrip("/")
+        columns: dict[str, list[Any]] = {}
+        row_ids = None
+        for field, column in zip(batch.schema, batch.columns):
+            kind = (field.metadata or {}).get(b"rerun:kind", b"").decode()
+            if kind == "control":
+                row_ids = column.to_pylist()
+            elif kind == "index":
+                if field.name == "log_time":
+                    continue
+                columns[field.name] = column.cast("int64").to_pylist()
+            else:
+                columns[field.name] = column.to_pylist()
+        out = rows.setdefault(entity, [])
+        for i in range(batch.num_rows):
+            row = {k: v[i] for k, v in columns.items() if v[i] is not None}
+            out.append((row_ids[i] if row_ids is not None else b"", row))
+    # RowIds are time-ordered (TUIDs), so sorting restores logging order across chunks.
+    return {e: [r for _, r in sorted(rs, key=lambda x: x[0])] for e, rs in rows.items()}
