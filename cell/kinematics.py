@@ -1,0 +1,111 @@
+"""UR5e inverse kinematics in closed form, for reachability checks without MuJoCo.
+
+The forward model is ``sim.ur5e`` (Universal Robots' published DH parameters), so the
+planner, the safety check and the simulated arm agree on one kinematic model. The
+closed-form inverse follows Hawkins, "Analytic Inverse Kinematics for the Universal Robots
+UR-5/UR-10 Arms" (2013): up to 8 solutions (shoulder left/right, wrist up/down, elbow
+up/down), each checked against the forward model before it is returned.
+
+Frames: ``base`` = world; ``flange`` = DH frame 6, the pose ur_rtde reports with a zero
+TCP offset. Joints in rad, lengths in m.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from sim.ur5e import DH_A, DH_ALPHA, DH_D, JOINT_LOWER, JOINT_UPPER, dh_fk, dh_frames
+
+__all__ = ["fk", "dh_frames", "ik_solutions", "ik_nearest", "JOINT_LOWER", "JOINT_UPPER"]
+
+_D1, _D4, _D5, _D6 = DH_D[0], DH_D[3], DH_D[4], DH_D[5]
+_A2, _A3 = DH_A[1], DH_A[2]
+
+
+def fk(q: np.ndarray) -> np.ndarray:
+    """4x4 world_from_flange at joints ``q`` (6,) [rad]."""
+    return dh_fk(np.asarray(q, float))
+
+
+def _dh(theta: float, i: int) -> np.ndarray:
+    ct, st = np.cos(theta), np.sin(theta)
+    ca, sa = np.cos(DH_ALPHA[i]), np.sin(DH_ALPHA[i])
+    return np.array([[ct, -st * ca, st * sa, DH_A[i] * ct],
+                     [st, ct * ca, -ct * sa, DH_A[i] * st],
+                     [0.0, sa, ca, DH_D[i]],
+                     [0.0, 0.0, 0.0, 1.0]])
+
+
+def _wrap(q: np.ndarray) -> np.ndarray:
+    return (q + np.pi) % (2 * np.pi) - np.pi
+
+
+def ik_solutions(world_from_flange: np.ndarray, tol_m: float = 1e-6, tol_rad: float = 1e-5) -> np.ndarray:
+    """(k, 6) joint solutions in [-pi, pi) that put the flange at ``world_from_flange``.
+
+    k is 0 when the pose is out of reach. Solutions at a wrist singularity (sin q5 = 0)
+    are dropped: there the arm cannot follow a straight line anyway. Every solution is
+    verified with the forward model to ``tol_m`` / ``tol_rad``.
+    """
+    T = np.asarray(world_from_flange, float)
+    p05 = T @ np.array([0.0, 0.0, -_D6, 1.0])
+    r = np.hypot(p05[0], p05[1])
+    if r < abs(_D4):
+        return np.zeros((0, 6))
+    out = []
+    phi = np.arctan2(p05[1], p05[0])
+    psi = np.arccos(np.clip(_D4 / r, -1.0, 1.0))
+    for q1 in (phi + psi + np.pi / 2, phi - psi + np.pi / 2):
+        s1, c1 = np.sin(q1), np.cos(q1)
+        c5 = (T[0, 3] * s1 - T[1, 3] * c1 - _D4) / _D6
+        if abs(c5) > 1.0 + 1e-9:
+            continue
+        for q5 in (np.arccos(np.clip(c5, -1, 1)), -np.arccos(np.clip(c5, -1, 1))):
+            s5 = np.sin(q5)
+            if abs(s5) < 1e-7:
+                continue
+            # Frame 0's x and y axes seen from frame 6 are the rows of R06.
+            q6 = np.arctan2((-T[0, 1] * s1 + T[1, 1] * c1) / s5, (T[0, 0] * s1 - T[1, 0] * c1) / s5)
+            T14 = np.linalg.inv(_dh(q1, 0)) @ T @ np.linalg.inv(_dh(q5, 4) @ _dh(q6, 5))
+            p13 = T14 @ np.array([0.0, -_D4, 0.0, 1.0])
+            n13 = np.linalg.norm(p13[:3])
+            c3 = (n13 ** 2 - _A2 ** 2 - _A3 ** 2) / (2 * _A2 * _A3)
+            if abs(c3) > 1.0 + 1e-9:
+                continue
+            for q3 in (np.arccos(np.clip(c3, -1, 1)), -np.arccos(np.clip(c3, -1, 1))):
+                q2 = -np.arctan2(p13[1], -p13[0]) + np.arcsin(np.clip(_A3 * np.sin(q3) / n13, -1, 1))
+                T34 = np.linalg.inv(_dh(q2, 1) @ _dh(q3, 2)) @ T14
+                q4 = np.arctan2(T34[1, 0], T34[0, 0])
+                q = _wrap(np.array([q1, q2, q3, q4, q5, q6]))
+                if _matches(q, T, tol_m, tol_rad):
+                    out.append(q)
+    return np.array(out).reshape(-1, 6)
+
+
+def _matches(q: np.ndarray, T: np.ndarray, tol_m: float, tol_rad: float) -> bool:
+    F = fk(q)
+    if np.linalg.norm(F[:3, 3] - T[:3, 3]) > tol_m:
+        return False
+    c = np.clip((np.trace(F[:3, :3].T @ T[:3, :3]) - 1) / 2, -1.0, 1.0)
+    return bool(np.arccos(c) <= tol_rad)
+
+
+def ik_nearest(world_from_flange: np.ndarray, q_near: np.ndarray,
+               lower: np.ndarray = JOINT_LOWER, upper: np.ndarray = JOINT_UPPER) -> np.ndarray | None:
+    """The solution closest to ``q_near`` (6,) within the joint limits, or None.
+
+    Each closed-form solution is shifted by whole turns to sit nearest ``q_near`` (UR joints
+    mostly turn +-2 pi), then the one with the smallest largest-joint change wins: that is
+    the configuration a controller's ``moveL`` keeps.
+    """
+    q_near = np.asarray(q_near, float)
+    best, best_cost = None, np.inf
+    for q in ik_solutions(world_from_flange):
+        q = q_near + _wrap(q - q_near)
+        if np.any(q < lower - 1e-9) or np.any(q > upper + 1e-9):
+            q = _wrap(q)  # fall back to the principal values
+            if np.any(q < lower - 1e-9) or np.any(q > upper + 1e-9):
+                continue
+        cost = float(np.max(np.abs(q - q_near)))
+        if cost < best_cost:
+            best, best_cost = q, cost
+    return best

@@ -1,0 +1,377 @@
+"""URArm against fake ur_rtde modules: the exact calls sent, and the connection guards."""
+from __future__ import annotations
+
+import socket
+import struct
+import sys
+import threading
+import time
+import types
+
+import numpy as np
+import pytest
+
+from cell.arm import ArmError, ArmNotConnectedError, ProtectiveStopError
+from cell.kinematics import fk
+from cell.poses import matrix_to_pose6
+from cell.safety import SafetyError, SafetyLimits
+from cell.ur import URArm, probe_rtde
+
+Q_START = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])   # flange near (-0.13, 0.34, 0.35)
+LIMITS = SafetyLimits(workspace_min=[-0.30, 0.10, 0.05], workspace_max=[0.60, 0.90, 0.70],
+                      max_tcp_speed=0.25, max_tcp_accel=1.2, max_joint_speed=1.0,
+                      keepout_min=[-0.07, 0.44, 0.0], keepout_max=[0.07, 0.56, 0.095])
+
+
+# ---------------------------------------------------------------- a fake RTDE server
+class RTDEServer:
+    """Accepts connections on 127.0.0.1; answers the protocol-version request if ``answer``."""
+
+    def __init__(self, answer: bool) -> None:
+        self.answer = answer
+        self.sock = socket.socket()
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.listen(8)
+        self.port = self.sock.getsockname()[1]
+        self.conns: list[socket.socket] = []
+        self.stopping = False
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        self.sock.settimeout(0.1)
+        while not self.stopping:
+            try:
+                conn, _ = self.sock.accept()
+            except OSError:
+                continue
+            self.conns.append(conn)
+            if self.answer:
+                conn.settimeout(1.0)
+                request = conn.recv(5)
+                size, kind, version = struct.unpack(">HBH", request)
+                assert (size, kind, version) == (5, 86, 2)
+                conn.sendall(struct.pack(">HBB", 4, 86, 1))
+
+    def close(self) -> None:
+        self.stopping = True
+        self.thread.join(2)
+        for c in self.conns:
+            c.close()
+        self.sock.close()
+
+
+@pytest.fixture
+def rtde_server():
+    server = RTDEServer(answer=True)
+    yield server
+    server.close()
+
+
+@pytest.fixture
+def silent_server():
+    server = RTDEServer(answer=False)
+    yield server
+    server.close()
+
+
+# ---------------------------------------------------------------- fake ur_rtde modules
+class Robot:
+    """Shared state of the fake controller and a log of every call across the interfaces."""
+
+    def __init__(self) -> None:
+        self.log: list[tuple] = []
+        self.q = Q_START.copy()
+        self.protective = False
+        self.connected = True
+        self.move_result = True
+        self.move_raises: Exception | None = None
+        self.pose_ok = True
+        self.construct_failures = 0
+
+
+def install_fake_rtde(monkeypatch, robot: Robot) -> None:
+    def record(name):
+        def method(self, *args):
+            robot.log.append((name, *args))
+            return True
+        return method
+
+    class Control:
+        def __init__(self, host):
+            if robot.construct_failures > 0:
+                robot.construct_failures -= 1
+                raise RuntimeError("fake: connection failed")
+            robot.log.append(("RTDEControlInterface", host))
+
+        setTcp = record("setTcp")
+        servoStop = record("servoStop")
+        speedStop = record("speedStop")
+        stopL = record("stopL")
+        stopJ = record("stopJ")
+        teachMode = record("teachMode")
+        endTeachMode = record("endTeachMode")
+        disconnect = record("control.disconnect")
+
+        def isConnected(self):
+            return robot.connected
+
+        def reconnect(self):
+            robot.log.append(("control.reconnect",))
+            robot.connected = True
+            return True
+
+        def isPoseWithinSafetyLimits(self, pose):
+            robot.log.append(("isPoseWithinSafetyLimits", pose))
+            return robot.pose_ok
+
+        def isJointsWithinSafetyLimits(self, q):
+            robot.log.append(("isJointsWithinSafetyLimits", q))
+            return True
+
+        def moveL(self, pose, speed, acceleration):
+            robot.log.append(("moveL", pose, speed, acceleration))
+            if robot.move_raises:
+                raise robot.move_raises
+            return robot.move_result
+
+        def moveJ(self, q, speed, acceleration):
+            robot.log.append(("moveJ", q, speed, acceleration))
+            if robot.move_result:
+                robot.q = np.array(q)
+            return robot.move_result
+
+    class Receive:
+        def __init__(self, host):
+            robot.log.append(("RTDEReceiveInterface", host))
+
+        def isConnected(self):
+            return True
+
+        def getActualTCPPose(self):
+            return matrix_to_pose6(fk(robot.q)).tolist()
+
+        def getActualQ(self):
+            return robot.q.tolist()
+
+        def isProtectiveStopped(self):
+            return robot.protective
+
+        disconnect = record("receive.disconnect")
+
+    class IO:
+        def __init__(self, host):
+            robot.log.append(("RTDEIOInterface", host))
+
+        setStandardDigitalOut = record("setStandardDigitalOut")
+        setToolDigitalOut = record("setToolDigitalOut")
+        disconnect = record("io.disconnect")
+
+    for name, attr, cls in (("rtde_control", "RTDEControlInterface", Control),
+                            ("rtde_receive", "RTDEReceiveInterface", Receive),
+                            ("rtde_io", "RTDEIOInterface", IO)):
+        module = types.ModuleType(name)
+        setattr(module, attr, cls)
+        monkeypatch.setitem(sys.modules, name, module)
+
+
+@pytest.fixture
+def robot(monkeypatch):
+    r = Robot()
+    install_fake_rtde(monkeypatch, r)
+    return r
+
+
+def make_arm(port: int, **kw) -> URArm:
+    kw.setdefault("gripper_settle_s", 0.0)
+    kw.setdefault("retry_delay_s", 0.0)
+    return URArm("127.0.0.1", port, LIMITS, **kw)
+
+
+def motion_calls(robot: Robot) -> list[tuple]:
+    keep = {"servoStop", "speedStop", "moveL", "moveJ", "stopL", "stopJ", "isPoseWithinSafetyLimits",
+            "isJointsWithinSafetyLimits"}
+    return [c for c in robot.log if c[0] in keep]
+
+
+# ---------------------------------------------------------------- probe
+def test_probe_silent_host_fails_quickly_with_host_and_port(silent_server):
+    t0 = time.monotonic()
+    with pytest.raises(ArmError) as e:
+        probe_rtde("127.0.0.1", silent_server.port, timeout=0.3)
+    assert time.monotonic() - t0 < 2.0
+    msg = str(e.value)
+    assert f"127.0.0.1:{silent_server.port}" in msg and "did not answer" in msg
+
+
+def test_probe_closed_port_is_a_clear_error():
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # nothing listens there now
+    with pytest.raises(ArmError, match=f"127.0.0.1:{port} refused"):
+        probe_rtde("127.0.0.1", port, timeout=0.5)
+
+
+def test_probe_accepts_an_rtde_answer(rtde_server):
+    probe_rtde("127.0.0.1", rtde_server.port, timeout=1.0)
+
+
+def test_connect_to_silent_host_never_constructs(robot, silent_server):
+    arm = make_arm(silent_server.port, probe_timeout_s=0.2, connect_attempts=2)
+    t0 = time.monotonic()
+    with pytest.raises(ArmError, match=f"127.0.0.1:{silent_server.port}.*2 attempt"):
+        arm.connect()
+    assert time.monotonic() - t0 < 3.0
+    assert not any(c[0] == "RTDEControlInterface" for c in robot.log)
+    assert not arm.is_connected
+
+
+def test_connect_retries_a_bounded_number_of_times(robot, rtde_server):
+    robot.construct_failures = 2
+    arm = make_arm(rtde_server.port, connect_attempts=3)
+    arm.connect()
+    assert arm.is_connected
+    assert ("setTcp", [0.0] * 6) in robot.log   # flange poses in and out
+    arm.disconnect()
+
+    robot.construct_failures = 5
+    with pytest.raises(ArmError, match="after 3 attempt"):
+        make_arm(rtde_server.port, connect_attempts=3).connect()
+
+
+def test_commands_need_a_connection(robot):
+    arm = make_arm(1)
+    with pytest.raises(ArmNotConnectedError):
+        arm.move_linear([0.1, 0.3, 0.3, 0, 3.14, 0], 0.1, 0.5)
+    assert robot.log == []
+
+
+# ---------------------------------------------------------------- motions: exact calls
+def test_move_linear_sends_exact_pose_after_servo_and_speed_stop(robot, rtde_server):
+    start = matrix_to_pose6(fk(Q_START))
+    target = start + np.array([0.05, 0.02, -0.03, 0.0, 0.0, 0.0])
+    with make_arm(rtde_server.port) as arm:
+        arm.move_linear(target, 0.1, 0.5)
+    calls = motion_calls(robot)
+    assert [c[0] for c in calls] == ["isPoseWithinSafetyLimits", "servoStop", "speedStop", "moveL"]
+    name, pose, speed, acc = calls[-1]
+    assert isinstance(pose, list) and len(pose) == 6 and all(type(v) is float for v in pose)
+    np.testing.assert_allclose(pose, target, atol=1e-12)   # [x, y, z, rx, ry, rz], base frame
+    assert (speed, acc) == (0.1, 0.5)
+    assert speed <= LIMITS.max_tcp_speed and acc <= LIMITS.max_tcp_accel
+    assert robot.log[-3:] == [("control.disconnect",), ("receive.disconnect",), ("io.disconnect",)]
+
+
+def test_move_joints_exact_call(robot, rtde_server):
+    q = Q_START + np.array([0.1, -0.05, 0.05, 0.0, 0.0, 0.2])
+    with make_arm(rtde_server.port) as arm:
+        arm.move_joints(q, 0.5, 1.0)
+    calls = motion_calls(robot)
+    assert [c[0] for c in calls] == ["isJointsWithinSafetyLimits", "servoStop", "speedStop", "moveJ"]
+    np.testing.assert_allclose(calls[-1][1], q)
+    assert calls[-1][2:] == (0.5, 1.0)
+
+
+def test_stop_l_in_finally_when_move_raises(robot, rtde_server):
+    robot.move_raises = RuntimeError("fake: RTDE link dropped mid-move")
+    target = matrix_to_pose6(fk(Q_START)) + np.array([0.0, 0.0, 0.02, 0, 0, 0])
+    arm = make_arm(rtde_server.port, stop_deceleration=3.0)
+    arm.connect()
+    with pytest.raises(RuntimeError, match="dropped"):
+        arm.move_linear(target, 0.1, 0.5)
+    assert [c[0] for c in motion_calls(robot)][-2:] == ["moveL", "stopL"]
+    assert robot.log[-1] == ("stopL", 3.0)
+
+
+def test_failed_move_stops_and_reports_protective_stop(robot, rtde_server):
+    target = matrix_to_pose6(fk(Q_START)) + np.array([0.0, 0.0, 0.02, 0, 0, 0])
+    arm = make_arm(rtde_server.port)
+    arm.connect()
+    robot.move_result = False
+    with pytest.raises(ArmError, match="failed"):
+        arm.move_linear(target, 0.1, 0.5)
+    assert robot.log[-1][0] == "stopL"
+    robot.protective = True
+    with pytest.raises(ProtectiveStopError):
+        arm.move_linear(target, 0.1, 0.5)
+    assert [c[0] for c in robot.log].count("moveL") == 1   # refused before sending
+    assert arm.is_protective_stopped()
+
+
+def test_exception_in_with_block_stops_then_disconnects(robot, rtde_server):
+    with pytest.raises(ValueError):
+        with make_arm(rtde_server.port):
+            raise ValueError("caller failed")
+    names = [c[0] for c in robot.log]
+    assert names[-4:] == ["stopL", "control.disconnect", "receive.disconnect", "io.disconnect"]
+
+
+# ---------------------------------------------------------------- safety: nothing moves
+@pytest.mark.parametrize("target_delta, speed, acc, why", [
+    ([0.0, 0.0, 0.02, 0, 0, 0], 0.5, 0.5, "speed"),
+    ([0.0, 0.0, 0.02, 0, 0, 0], 0.1, 5.0, "acceleration"),
+    ([0.0, 0.0, 0.50, 0, 0, 0], 0.1, 0.5, "workspace"),
+])
+def test_limit_violations_send_nothing(robot, rtde_server, target_delta, speed, acc, why):
+    target = matrix_to_pose6(fk(Q_START)) + np.array(target_delta)
+    with make_arm(rtde_server.port) as arm:
+        with pytest.raises(SafetyError, match=why):
+            arm.move_linear(target, speed, acc)
+    assert motion_calls(robot) == []
+
+
+def test_keepout_target_sends_nothing(robot, rtde_server):
+    # A flange target inside the box around the part.
+    down = [np.pi, 0.0, 0.0]
+    with make_arm(rtde_server.port) as arm:
+        robot.q = Q_START
+        start = arm.tcp_pose()
+        with pytest.raises(SafetyError, match="keep-out"):
+            arm.move_linear([0.0, 0.50, 0.06, *down], 0.1, 0.5)
+    assert start[2] > 0.095 and motion_calls(robot) == []
+
+
+def test_controller_safety_refusal_sends_nothing(robot, rtde_server):
+    robot.pose_ok = False
+    target = matrix_to_pose6(fk(Q_START)) + np.array([0.0, 0.0, 0.02, 0, 0, 0])
+    with make_arm(rtde_server.port) as arm:
+        with pytest.raises(SafetyError, match="controller"):
+            arm.move_linear(target, 0.1, 0.5)
+    assert [c[0] for c in motion_calls(robot)] == ["isPoseWithinSafetyLimits"]
+
+
+# ---------------------------------------------------------------- gripper, freedrive, reconnect
+def test_gripper_through_configured_digital_output(robot, rtde_server):
+    with make_arm(rtde_server.port, gripper_output=3, gripper_close_level=False) as arm:
+        arm.close_gripper()
+        arm.open_gripper()
+    io = [c for c in robot.log if c[0] == "setStandardDigitalOut"]
+    assert io == [("setStandardDigitalOut", 3, False), ("setStandardDigitalOut", 3, True)]
+    with pytest.raises(ArmError, match="does not exist"):
+        make_arm(rtde_server.port, gripper_output=2, gripper_output_kind="tool")
+
+
+def test_freedrive_uses_teach_mode(robot, rtde_server):
+    with make_arm(rtde_server.port) as arm:
+        arm.freedrive(True)
+        arm.freedrive(False)
+    names = [c[0] for c in robot.log]
+    assert names.index("teachMode") < names.index("endTeachMode")
+
+
+def test_dropped_link_is_reconnected_boundedly(robot, rtde_server):
+    with make_arm(rtde_server.port) as arm:
+        robot.connected = False
+        arm.tcp_pose()
+        assert ("control.reconnect",) in robot.log
+
+        class Dead:
+            def reconnect(self):
+                robot.log.append(("dead.reconnect",))
+                return False
+        robot.connected = False
+        sys.modules["rtde_control"].RTDEControlInterface.reconnect = lambda self: Dead().reconnect()
+        with pytest.raises(ArmError, match="3 reconnection attempt"):
+            arm.joints()
+        assert [c[0] for c in robot.log].count("dead.reconnect") == 3
