@@ -11,6 +11,7 @@ rerun's global recording. One entity tree (paths relative to the recording root)
     world/cameras/<cam>/image/ignore    SegmentationImage, pixels that do not count (class 3)
     world/cameras/<cam>/image/cross     Points2D, calibration target detections
     world/cameras/<cam>/image/cross_reprojected   Points2D, the same points reprojected
+    world/tape/fit                      LineStrips3D centre line at each optimiser iteration
     world/tape/estimate                 LineStrips3D centre line of the fit
     world/tape/estimate/nodes           Points3D P_C[0..n]
     world/tape/estimate/plates          Mesh3D of the plate quads
@@ -35,6 +36,10 @@ rerun's global recording. One entity tree (paths relative to the recording root)
     grasp/result                        TextLog summary of a grasp
     grasp/<key>                         Scalars of each numeric result field
 
+Fits of several captures in one file (``tapecell estimate A B --rrd F``) are rooted at
+``<capture name>/`` (the ``prefix`` argument of the fit loggers), and the blueprint gets a
+tab per capture.
+
 Timelines: ``iteration`` (sequence) for the estimator's cost, ``calib_pose`` (sequence)
 for calibration poses; both are cleared again after use so they do not stamp unrelated
 entities. ``sim_time`` (duration, s) is set by the arm and gripper loggers and stays set,
@@ -54,7 +59,7 @@ import dataclasses
 import os
 import uuid
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping, Sequence
+from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 import rerun as rr
@@ -87,16 +92,30 @@ class RecordingFile(rr.RecordingStream):
         super().__init__(application_id, recording_id=uuid.uuid4())
         self.path = path
         self.temp_path = temp_path
+        self.layout: dict[str, list[str]] = {}  # camera names per fit prefix, for the blueprint
 
 
 # ---------------------------------------------------------------------------- file
 
 
-def default_blueprint(camera_names: Sequence[str] = ()) -> rrb.Blueprint:
-    """The layout: 3-D world on the left; camera images, cost and arm plots on the right."""
-    cams = [rrb.Spatial2DView(origin=f"world/cameras/{n}/image", name=n) for n in camera_names]
+def default_blueprint(camera_names: Sequence[str] = (),
+                      roots: Mapping[str, Sequence[str]] | None = None) -> rrb.Blueprint:
+    """The layout: 3-D world on the left; camera images, cost and arm plots on the right.
+
+    roots: for recordings of several captures, camera names per prefix; each prefix gets
+    a tab with its own world, cameras and cost.
+    """
+    if roots and any(roots):
+        tabs = [_layout(_root(p), cams, name=p or "cell") for p, cams in roots.items()]
+        return rrb.Blueprint(rrb.Tabs(*tabs), collapse_panels=True)
+    return rrb.Blueprint(_layout("", camera_names), collapse_panels=True)
+
+
+def _layout(root: str, camera_names: Sequence[str], name: str | None = None) -> rrb.Container:
+    cams = [rrb.Spatial2DView(origin=f"{root}world/cameras/{n}/image", name=n)
+            for n in camera_names]
     plots = rrb.Tabs(
-        rrb.TimeSeriesView(origin="estimator", name="estimator cost"),
+        rrb.TimeSeriesView(origin=f"{root}estimator", name="estimator cost"),
         rrb.TimeSeriesView(origin="arm", name="joints"),
         rrb.TimeSeriesView(origin="gripper", name="gripper"),
         rrb.TimeSeriesView(origin="grasp", name="grasp"),
@@ -105,13 +124,11 @@ def default_blueprint(camera_names: Sequence[str] = ()) -> rrb.Blueprint:
     logs = rrb.TextLogView(origin="/", name="events")
     right = [rrb.Grid(*cams, name="cameras")] if cams else []
     right += [plots, logs]
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Spatial3DView(origin="world", name="world"),
-            rrb.Vertical(*right),
-            column_shares=[3, 2],
-        ),
-        collapse_panels=True,
+    return rrb.Horizontal(
+        rrb.Spatial3DView(origin=f"{root}world", name="world"),
+        rrb.Vertical(*right),
+        column_shares=[3, 2],
+        name=name,
     )
 
 
@@ -185,8 +202,13 @@ def _axes_arrows(origins: np.ndarray, rotations: np.ndarray, length: float) -> r
                        colors=np.tile(_AXIS_COLORS, (len(origins), 1)))
 
 
-def _image_path(camera_name: str) -> str:
-    return f"world/cameras/{camera_name}/image"
+def _root(prefix: str | None) -> str:
+    """Entity root of a fit: "" or "<escaped prefix>/" (several captures in one file)."""
+    return f"{rr.escape_entity_path_part(prefix)}/" if prefix else ""
+
+
+def _image_path(camera_name: str, prefix: str | None = None) -> str:
+    return f"{_root(prefix)}world/cameras/{camera_name}/image"
 
 
 def _class_image(mask: np.ndarray, class_id: int) -> np.ndarray:
@@ -196,28 +218,34 @@ def _class_image(mask: np.ndarray, class_id: int) -> np.ndarray:
 # ---------------------------------------------------------------------------- cameras
 
 
-def log_cameras(stream: rr.RecordingStream, cameras: Iterable[Camera]) -> None:
+def log_cameras(stream: rr.RecordingStream, cameras: Iterable[Camera],
+                prefix: str | None = None) -> None:
     """Each camera's pose, intrinsics and overlay colours (static), and a layout showing them."""
     cameras = list(cameras)
     for cam in cameras:
-        stream.log(f"world/cameras/{cam.name}",
+        stream.log(f"{_root(prefix)}world/cameras/{cam.name}",
                    rr.Transform3D(translation=cam.center, mat3x3=cam.R.T), static=True)
-        stream.log(_image_path(cam.name),
+        stream.log(_image_path(cam.name, prefix),
                    rr.Pinhole(image_from_camera=_rerun_K(cam.K), resolution=[cam.width, cam.height],
                               camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.05),
                    rr.AnnotationContext(_ANNOTATIONS), static=True)
-    stream.send_blueprint(default_blueprint([c.name for c in cameras]), make_active=False,
-                          make_default=True)
+    names = [c.name for c in cameras]
+    if isinstance(stream, RecordingFile):
+        stream.layout[prefix or ""] = names
+        blueprint = default_blueprint(names, stream.layout if prefix else None)
+    else:
+        blueprint = default_blueprint(names, {prefix: names} if prefix else None)
+    stream.send_blueprint(blueprint, make_active=False, make_default=True)
 
 
 def log_view(stream: rr.RecordingStream, camera: Camera, mask: np.ndarray,
              image: np.ndarray | None = None, model_mask: np.ndarray | None = None,
-             ignore: np.ndarray | None = None) -> None:
+             ignore: np.ndarray | None = None, prefix: str | None = None) -> None:
     """One camera's frame: RGB image, observed mask, model silhouette and ignored pixels.
 
     mask, model_mask, ignore: (H, W) bool; image: (H, W, 3) uint8 RGB.
     """
-    base = _image_path(camera.name)
+    base = _image_path(camera.name, prefix)
     if image is not None:
         stream.log(f"{base}/rgb", rr.Image(np.asarray(image, np.uint8), color_model="RGB",
                                            draw_order=-10.0))
@@ -259,57 +287,86 @@ def _log_tape_shape(stream: rr.RecordingStream, base: str, spec: TapeSpec,
 
 
 def log_estimate(stream: rr.RecordingStream, estimate: Estimate, spec: TapeSpec,
-                 view_names: Sequence[str] | None = None) -> None:
+                 view_names: Sequence[str] | None = None, prefix: str | None = None) -> None:
     """The fitted tape in 3-D (centre line, nodes, plates), its tip frame and view costs.
 
     view_names: camera names in the order of ``estimate.view_costs`` (default view0..).
     """
-    _log_tape_shape(stream, "world/tape/estimate", spec, estimate.angles)
-    stream.log("world/tape/tip", _axes_arrows(estimate.tip_position, estimate.tip_rotation,
+    root = _root(prefix)
+    _log_tape_shape(stream, f"{root}world/tape/estimate", spec, estimate.angles)
+    stream.log(f"{root}world/tape/tip", _axes_arrows(estimate.tip_position, estimate.tip_rotation,
                                               FRAME_AXIS_LENGTH_M))
     names = list(view_names) if view_names is not None else [
         f"view{i}" for i in range(len(estimate.view_costs))]
     for name, cost in zip(names, np.asarray(estimate.view_costs, float)):
-        stream.log(f"estimator/view_cost/{name}", rr.Scalars([cost]))
-    stream.log("estimator/final_cost", rr.Scalars([float(estimate.cost)]))
+        stream.log(f"{root}estimator/view_cost/{name}", rr.Scalars([cost]))
+    stream.log(f"{root}estimator/final_cost", rr.Scalars([float(estimate.cost)]))
 
 
-def log_cost(stream: rr.RecordingStream, iteration: int, cost: float) -> None:
+def log_cost(stream: rr.RecordingStream, iteration: int, cost: float,
+             prefix: str | None = None) -> None:
     """The estimator's cost at one optimiser iteration (on the ``iteration`` timeline)."""
     stream.set_time("iteration", sequence=int(iteration))
-    stream.log("estimator/cost", rr.Scalars([float(cost)]))
+    stream.log(f"{_root(prefix)}estimator/cost", rr.Scalars([float(cost)]))
     stream.disable_timeline("iteration")
 
 
-def log_cost_history(stream: rr.RecordingStream, history: Sequence[float]) -> None:
+def log_cost_history(stream: rr.RecordingStream, history: Sequence[float],
+                     prefix: str | None = None) -> None:
     """A whole cost history at once (iterations 0..len-1), as one column."""
     values = np.asarray(history, float).reshape(-1)
     if values.size == 0:
         return
-    stream.send_columns("estimator/cost",
+    stream.send_columns(f"{_root(prefix)}estimator/cost",
                         indexes=[rr.TimeColumn("iteration", sequence=np.arange(values.size))],
                         columns=rr.Scalars.columns(scalars=values))
 
 
-def log_truth(stream: rr.RecordingStream, truth: Truth) -> None:
+def log_truth(stream: rr.RecordingStream, truth: Truth, prefix: str | None = None) -> None:
     """The true centre line and tip frame (simulated captures)."""
-    stream.log("world/tape/truth", rr.LineStrips3D([truth.points], radii=0.0004,
+    root = _root(prefix)
+    stream.log(f"{root}world/tape/truth", rr.LineStrips3D([truth.points], radii=0.0004,
                                                    colors=[[40, 200, 40]]))
-    stream.log("world/tape/truth/tip", _axes_arrows(truth.tip_position, truth.tip_rotation,
+    stream.log(f"{root}world/tape/truth/tip", _axes_arrows(truth.tip_position, truth.tip_rotation,
                                                     FRAME_AXIS_LENGTH_M))
 
 
-def log_fit(stream: rr.RecordingStream, capture: Capture, estimate: Estimate) -> None:
-    """Everything about one fit: cameras, each view with the model overlay, cost, tape, truth."""
-    log_cameras(stream, capture.cameras)
+def fit_logger(stream: rr.RecordingStream, capture: Capture,
+               prefix: str | None = None) -> Callable[[int, float, np.ndarray], None]:
+    """An ``estimator.estimate`` callback logging the cost and the current centre line at
+    each optimiser iteration (``iteration`` timeline)."""
+    root = _root(prefix)
+
+    def on_iteration(iteration: int, cost: float, angles: np.ndarray) -> None:
+        stream.set_time("iteration", sequence=int(iteration))
+        stream.log(f"{root}estimator/cost", rr.Scalars([float(cost)]))
+        nodes = forward_kinematics(capture.tape, angles).nodes
+        stream.log(f"{root}world/tape/fit", rr.LineStrips3D([nodes], radii=0.0002,
+                                                            colors=[[160, 160, 160]]))
+        stream.disable_timeline("iteration")
+
+    return on_iteration
+
+
+def log_fit_result(stream: rr.RecordingStream, capture: Capture, estimate: Estimate,
+                   prefix: str | None = None) -> None:
+    """The outcome of one fit: cameras, each view with the model overlay, the tape and the
+    truth when known. ``prefix`` roots it all at "<prefix>/" (several captures, one file)."""
+    log_cameras(stream, capture.cameras, prefix)
     for view in capture.views:
         log_view(stream, view.camera, view.mask, image=view.image,
                  model_mask=model_silhouette(view.camera, capture.tape, estimate.angles),
-                 ignore=view.ignore)
-    log_cost_history(stream, estimate.history)
-    log_estimate(stream, estimate, capture.tape, [c.name for c in capture.cameras])
+                 ignore=view.ignore, prefix=prefix)
+    log_estimate(stream, estimate, capture.tape, [c.name for c in capture.cameras], prefix)
     if capture.truth is not None:
-        log_truth(stream, capture.truth)
+        log_truth(stream, capture.truth, prefix)
+
+
+def log_fit(stream: rr.RecordingStream, capture: Capture, estimate: Estimate,
+            prefix: str | None = None) -> None:
+    """:func:`log_fit_result` plus the estimate's whole cost history, after the fact."""
+    log_fit_result(stream, capture, estimate, prefix)
+    log_cost_history(stream, estimate.history, prefix)
 
 
 # ---------------------------------------------------------------------------- arm, plan, grasp

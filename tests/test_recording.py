@@ -255,22 +255,24 @@ def test_calibration(recorded, scene):
     assert [r["Scalars:scalars"][0] for r in per_pose] == pytest.approx([0.3, 0.25])
 
 
-def _blueprint_origins(path) -> set[str]:
-    """Space origins of the views in the last blueprint written to the file."""
+def _blueprint_origins(path) -> list[set[str]]:
+    """Space origins of the views of each blueprint in the file."""
     reader = RrdReader(str(path))
-    store = reader.store(store=reader.blueprints()[-1])
-    origins = set()
-    for chunk in store.stream().to_chunks():
-        batch = chunk.to_record_batch()
-        if "ViewBlueprint:space_origin" in batch.schema.names:
-            for value in batch.column("ViewBlueprint:space_origin").to_pylist():
-                origins.update(v.lstrip("/") for v in value or [])
-    return origins
+    out = []
+    for entry in reader.blueprints():
+        origins = set()
+        for chunk in reader.store(store=entry).stream().to_chunks():
+            batch = chunk.to_record_batch()
+            if "ViewBlueprint:space_origin" in batch.schema.names:
+                for value in batch.column("ViewBlueprint:space_origin").to_pylist():
+                    origins.update(v.lstrip("/") for v in value or [])
+        out.append(origins)
+    return out
 
 
 def test_default_blueprint_shows_world_cameras_and_cost(recorded):
-    origins = _blueprint_origins(recorded["path"])
-    assert {"world", "world/cameras/cam0/image", "world/cameras/cam1/image", "estimator"} <= origins
+    assert any({"world", "world/cameras/cam0/image", "world/cameras/cam1/image", "estimator"}
+               <= origins for origins in _blueprint_origins(recorded["path"]))
 
 
 def test_model_silhouette_covers_the_projected_plates(scene):
@@ -307,6 +309,31 @@ def test_log_fit_logs_a_whole_capture(scene, tmp_path):
     assert [r["iteration"] for r in costs] == list(range(5))
     assert [r["Scalars:scalars"][0] for r in costs] == pytest.approx(scene["estimate"].history)
     assert "world/tape/truth" in data
+
+
+def test_fit_logger_and_prefixed_captures(scene, tmp_path):
+    """Two captures in one file: each under its own root, with a blueprint tab each, and the
+    callback's per-iteration costs on the iteration timeline."""
+    path = tmp_path / "two.rrd"
+    fit_angles = scene["fit_angles"]
+    with rec.recording(path) as stream:
+        for name in ("clean 00", "clean-01"):
+            callback = rec.fit_logger(stream, scene["capture"], prefix=name)
+            for i, cost in enumerate(scene["estimate"].history):
+                callback(i + 1, cost, fit_angles * (i + 1) / 5)
+            rec.log_fit_result(stream, scene["capture"], scene["estimate"], prefix=name)
+    data = rec.read_recording(path)
+    for root in ("clean\\ 00", "clean-01"):
+        costs = data[f"{root}/estimator/cost"]
+        assert [r["iteration"] for r in costs] == [1, 2, 3, 4, 5]
+        assert [r["Scalars:scalars"][0] for r in costs] == pytest.approx(scene["estimate"].history)
+        last_fit = np.array(data[f"{root}/world/tape/fit"][-1]["LineStrips3D:strips"][0])
+        np.testing.assert_allclose(last_fit, scene["estimate"].nodes, atol=1e-6)
+        assert f"{root}/world/cameras/cam1/image/model" in data
+        assert f"{root}/world/tape/truth" in data
+    assert "world/tape/estimate" not in data
+    assert any({"clean\\ 00/world", "clean-01/world", "clean-01/world/cameras/cam0/image",
+                "clean\\ 00/estimator"} <= origins for origins in _blueprint_origins(path))
 
 
 def test_failed_block_leaves_no_file(scene, tmp_path):
