@@ -33,12 +33,12 @@ class SimConfigError(TapecellError):
 # ----------------------------------------------------------------------------- sections
 @dataclass(frozen=True)
 class SimSection:
-    """timestep, settle_s, settle_damping_s: s. mask_source: "rgb" (the estimator's OpenCV
+    """timestep, settle_s (longest settling): s. settle_velocity: rad/s. mask_source: "rgb" (the estimator's OpenCV
     segmentation of the rendered image) or "segmentation" (MuJoCo's exact mask).
     shadows: render shadows and reflections. ignore_dilate_px: margin of ignore masks."""
     timestep: float
     settle_s: float
-    settle_damping_s: float
+    settle_velocity: float
     mask_source: str
     shadows: bool
     ignore_dilate_px: int
@@ -352,7 +352,7 @@ def _check(cfg: CellConfig) -> None:
 
     s, t = cfg.sim, cfg.tape
     need(0 < s.timestep <= 0.005, "'sim.timestep' must be in (0, 0.005] s")
-    need(s.settle_s >= s.settle_damping_s >= 0, "'sim.settle_s' must be >= 'sim.settle_damping_s' >= 0")
+    need(s.settle_s >= 0, "'sim.settle_s' must be >= 0")
     need(s.mask_source in ("rgb", "segmentation"), "'sim.mask_source' must be \"rgb\" or \"segmentation\"")
     need(t.plates >= 2 and t.estimator_plates >= 1, "'tape.plates' must be >= 2, 'tape.estimator_plates' >= 1")
     for k in ("length", "width", "thickness", "density", "flat_bend_stiffness", "edge_bend_stiffness",

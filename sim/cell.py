@@ -1,0 +1,323 @@
+"""The simulated cell: MuJoCo model, data and renderers, captures with ground truth.
+
+MuJoCo's cameras are converted to OpenCV :class:`estimator.geometry.Camera` objects once,
+here (``cameras()``); everything downstream works in OpenCV's convention.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import cv2
+import mujoco
+import numpy as np
+
+from estimator.capture import Capture, Truth, View
+from estimator.geometry import Camera
+from estimator.segment import SegmentationParams, segment_tape
+
+from .config import TOOL_NAMES, CellConfig, SimConfigError
+from .scene import GROUP_ARM, GROUP_TAPE, TAPE_HINGES, TOOL_GROUPS, build_spec
+from .tape_shape import RestShape, rest_shape, tape_spec
+from .ur5e import JOINT_NAMES
+
+_CV_FROM_MJ_CAM = np.diag([1.0, -1.0, -1.0])   # MuJoCo camera looks down -z with y up
+
+
+class SimError(SimConfigError):
+    """The simulation went wrong (unstable, warnings, unknown camera or tool)."""
+
+
+@dataclass(frozen=True)
+class CaptureTiming:
+    """Seconds spent in the last reset (settling) and capture (rendering + segmentation)."""
+    settle_s: float
+    render_s: float
+
+
+class SimCell:
+    """The cell in MuJoCo: a UR5e with tools, a part with a curled tape, 2 or 3 cameras.
+
+    ``SimCell(config, seed, n_cameras=2)`` builds and compiles the scene, creates the
+    renderers once, and resets to ``seed``'s tape. ``model`` / ``data`` are MuJoCo's.
+    """
+
+    def __init__(self, config: CellConfig, seed: int = 0, n_cameras: int = 2, tool: str | None = None):
+        self.config = config
+        self.n_cameras = n_cameras
+        self.camera_names = [c.name for c in config.camera_placements(n_cameras)]
+        self.spec = build_spec(config, n_cameras)
+        self.model = self.spec.compile()
+        self.data = mujoco.MjData(self.model)
+        m = self.model
+        self._tape_geoms = np.array([m.geom(f"tape_{i}").id for i in range(config.tape.plates)])
+        self._tape_bodies = np.array([m.body(f"tape_{i}").id for i in range(config.tape.plates)])
+        self._tape_qadr = np.array([[m.jnt_qposadr[m.joint(f"tape_{i}_{h}").id] for h in ("twist", "flat", "edge")]
+                                    for i in range(config.tape.plates)])
+        self._tape_dofs = np.array([m.jnt_dofadr[m.joint(f"tape_{i}_{h}").id]
+                                    for i in range(config.tape.plates) for h in TAPE_HINGES])
+        self._tip_site = m.site("tape_tip").id
+        # Inertia weights of the tape's hinges for the kinetic energy used in settling.
+        self._tape_armature = m.dof_armature[self._tape_dofs] + m.dof_damping[self._tape_dofs] * m.opt.timestep
+        self.arm_qadr = np.array([m.jnt_qposadr[m.joint(n).id] for n in JOINT_NAMES])
+        self.arm_dofs = np.array([m.jnt_dofadr[m.joint(n).id] for n in JOINT_NAMES])
+        self.arm_actuators = np.array([m.actuator(n).id for n in JOINT_NAMES])
+        self.finger_qadr = np.array([m.jnt_qposadr[m.joint(f"finger_{s}").id] for s in ("left", "right")])
+        self.finger_actuators = np.array([m.actuator(f"finger_{s}").id for s in ("left", "right")])
+        self._pad_geoms = np.array([m.geom(f"pad_{s}").id for s in ("left", "right")])
+        self._occluder_geoms = np.array([g for g in range(m.ngeom) if m.geom_group[g] >= GROUP_ARM])
+        self._is_tape_geom = np.zeros(m.ngeom + 1, bool)
+        self._is_tape_geom[self._tape_geoms] = True
+        self._is_occluder = np.zeros(m.ngeom + 1, bool)
+        self._is_occluder[self._occluder_geoms] = True
+        self._pad_contype = m.geom_contype[self._pad_geoms].copy()
+        c = config.cameras
+        self._renderer = mujoco.Renderer(m, c.height, c.width)
+        self._overview_renderer: mujoco.Renderer | None = None
+        self._option = mujoco.MjvOption()
+        # Renders are noise-free: no opening, which would erase the tape where it is seen
+        # edge-on (a line 2-3 px wide). Recorded in the capture so re-segmenting agrees.
+        self.segmentation_overrides = {"open_px": 0}
+        self.segmentation_params = SegmentationParams().with_overrides(self.segmentation_overrides)
+        self.mounted_tool = ""
+        self.mount_tool(tool or config.arm.mounted_tool)
+        self.rest: RestShape | None = None
+        self.seed = seed
+        self.timing = CaptureTiming(0.0, 0.0)
+        self.reset(seed)
+
+    # ------------------------------------------------------------------ state
+    def close(self) -> None:
+        """Free the renderers' GL contexts."""
+        self._renderer.close()
+        if self._overview_renderer is not None:
+            self._overview_renderer.close()
+
+    def __enter__(self) -> "SimCell":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def mount_tool(self, tool: str) -> None:
+        """Show ``tool`` ("plate", "needle", "gripper") on the flange and hide the others.
+        All three are modelled; only the mounted one is rendered and has contacts."""
+        if tool not in TOOL_NAMES:
+            raise SimError(f"unknown tool '{tool}' (known: {', '.join(TOOL_NAMES)})")
+        for name, group in TOOL_GROUPS.items():
+            self._option.geomgroup[group] = name == tool
+        self.model.geom_contype[self._pad_geoms] = self._pad_contype if tool == "gripper" else 0
+        self.mounted_tool = tool
+
+    def reset(self, seed: int | None = None, arm_joints: np.ndarray | None = None) -> RestShape:
+        """Reset to ``seed``'s curled tape (arm parked, gripper open) and let it settle under
+        gravity for ``sim.settle_s``. Deterministic: the same seed gives the same state."""
+        t0 = time.perf_counter()
+        if seed is not None:
+            self.seed = int(seed)
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        self.rest = rest_shape(self.config, self.seed)
+        # The springs' reference angles are the rest shape; start there so settling is short.
+        m.qpos_spring[self._tape_qadr] = self.rest.angles
+        d.qpos[self._tape_qadr] = self.rest.angles
+        q_arm = np.asarray(self.config.arm.park_joints if arm_joints is None else arm_joints, float)
+        d.qpos[self.arm_qadr] = q_arm
+        d.ctrl[self.arm_actuators] = q_arm
+        open_half = self.config.tools.gripper.max_opening / 2
+        d.qpos[self.finger_qadr] = open_half
+        d.ctrl[self.finger_actuators] = open_half
+        mujoco.mj_forward(m, d)
+        self.settle()
+        self.timing = CaptureTiming(time.perf_counter() - t0, self.timing.render_s)
+        return self.rest
+
+    def settle(self) -> int:
+        """Let the tape come to rest under gravity; returns the steps taken.
+
+        Dynamic relaxation: the tape is simulated as usual, but whenever its kinetic energy
+        passes a peak its velocities are zeroed, so it slides into the static equilibrium
+        within a few of its (slow, ~2 Hz) swings instead of ringing for seconds. Stops when
+        no tape hinge moves faster than ``sim.settle_velocity`` or after ``sim.settle_s``.
+        """
+        m, d = self.model, self.data
+        dofs = self._tape_dofs
+        arm = self._tape_armature
+        n_max = int(round(self.config.sim.settle_s / m.opt.timestep))
+        v_stop = self.config.sim.settle_velocity
+        ke_prev = 0.0
+        for i in range(1, n_max + 1):
+            mujoco.mj_step(m, d)
+            v = d.qvel[dofs]
+            ke = float(np.dot(arm, v * v))
+            if ke < ke_prev:
+                d.qvel[dofs] = 0.0
+                ke = 0.0
+            ke_prev = ke
+            if i >= 20 and i % 10 == 0 and np.abs(v).max() < v_stop:
+                break
+        self.check_warnings()
+        return i
+
+    def step(self, n: int = 1) -> None:
+        """Advance the simulation ``n`` steps; a MuJoCo warning (instability) is a SimError."""
+        m, d = self.model, self.data
+        for _ in range(n):
+            mujoco.mj_step(m, d)
+        self.check_warnings()
+
+    def check_warnings(self) -> None:
+        counts = self.data.warning.number
+        if np.any(counts > 0):
+            kinds = [mujoco.mjtWarning(i).name for i in np.flatnonzero(counts)]
+            raise SimError(f"MuJoCo warned during simulation ({', '.join(kinds)}); seed {self.seed}")
+
+    # -------------------------------------------------------------- the tape
+    def tape_frames(self) -> tuple[np.ndarray, np.ndarray]:
+        """(nodes (n+1, 3) [m], frames (n+1, 3, 3) world_from_node) of the simulated plates;
+        node 0 is the fixed base, node n the tip."""
+        d = self.data
+        base = self.model.body("tape_base").id
+        nodes = np.vstack([d.xpos[self._tape_bodies], d.site_xpos[self._tip_site][None]])
+        frames = np.concatenate([d.xmat[base].reshape(1, 3, 3), d.xmat[self._tape_bodies].reshape(-1, 3, 3)])
+        nodes[0] = d.xpos[base]
+        return nodes, frames
+
+    def tape_centerline(self, per_plate: int = 2) -> tuple[np.ndarray, np.ndarray]:
+        """(s (M,) arc length [m], points (M, 3) [m]): the centre line sampled ``per_plate``
+        times per plate, base first, tip last."""
+        nodes, frames = self.tape_frames()
+        L = self.config.tape.plate_length
+        f = np.arange(per_plate) / per_plate
+        pts = (nodes[:-1, None, :] + f[None, :, None] * L * frames[1:, None, :, 0]).reshape(-1, 3)
+        pts = np.vstack([pts, nodes[-1:]])
+        s = np.arange(len(pts)) * (L / per_plate)
+        return s, pts
+
+    def tape_tip_position(self) -> np.ndarray:
+        """(3,) the centre of the tape's free end [m]."""
+        return self.data.site_xpos[self._tip_site].copy()
+
+    def tape_tip_frame(self) -> np.ndarray:
+        """4x4 world_from_tip: columns trunk, left, normal of the last plate, at the tip."""
+        T = np.eye(4)
+        T[:3, :3] = self.data.xmat[self._tape_bodies[-1]].reshape(3, 3)
+        T[:3, 3] = self.tape_tip_position()
+        return T
+
+    def truth(self) -> Truth:
+        s, pts = self.tape_centerline()
+        return Truth(s, pts, self.tape_tip_frame()[:3, :3])
+
+    def tape_angles(self) -> np.ndarray:
+        """(n, 3) current hinge angles (twist, flat, edge) [rad] of the simulated plates."""
+        return self.data.qpos[self._tape_qadr].copy()
+
+    def gripper_pad_contacts_with_tape(self) -> dict[str, int]:
+        """Number of active contacts of each pad ("left", "right") with tape plates."""
+        d = self.data
+        out = {"left": 0, "right": 0}
+        for i in range(d.ncon):
+            g = (d.contact.geom1[i], d.contact.geom2[i])
+            for side, pad in zip(("left", "right"), self._pad_geoms):
+                if pad in g and self._is_tape_geom[g[0] if g[1] == pad else g[1]]:
+                    out[side] += 1
+        return out
+
+    # --------------------------------------------------------------- cameras
+    def cameras(self) -> list[Camera]:
+        """The true cameras in OpenCV's convention (exact K, zero distortion, R, t)."""
+        return [self.camera(n) for n in self.camera_names]
+
+    def camera(self, name: str) -> Camera:
+        m, d = self.model, self.data
+        cid = self._camera_id(name)
+        h, w = self._renderer.height, self._renderer.width
+        if name == "overview":
+            h, w = self.config.overview.height, self.config.overview.width
+        f = 0.5 * h / np.tan(0.5 * np.radians(m.cam_fovy[cid]))
+        K = np.array([[f, 0.0, w / 2 - 0.5], [0.0, f, h / 2 - 0.5], [0.0, 0.0, 1.0]])
+        world_from_cv = d.cam_xmat[cid].reshape(3, 3) @ _CV_FROM_MJ_CAM
+        R = world_from_cv.T
+        t = -R @ d.cam_xpos[cid]
+        return Camera(name, w, h, K, np.zeros(5), R, t)
+
+    def _camera_id(self, name: str) -> int:
+        cid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, name)
+        if cid < 0:
+            raise SimError(f"no camera '{name}' (have {', '.join(self.camera_names)}, overview)")
+        return cid
+
+    def _renderer_for(self, name: str) -> mujoco.Renderer:
+        if name != "overview":
+            return self._renderer
+        if self._overview_renderer is None:
+            ov = self.config.overview
+            self._overview_renderer = mujoco.Renderer(self.model, ov.height, ov.width)
+        return self._overview_renderer
+
+    def _update(self, name: str, option: mujoco.MjvOption | None = None) -> mujoco.Renderer:
+        self._camera_id(name)
+        r = self._renderer_for(name)
+        r.update_scene(self.data, camera=name, scene_option=option or self._option)
+        if not self.config.sim.shadows:
+            r.scene.flags[mujoco.mjtRndFlag.mjRND_SHADOW] = False
+            r.scene.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = False
+        return r
+
+    def render_rgb(self, name: str) -> np.ndarray:
+        """(H, W, 3) uint8 image from camera ``name`` (or "overview")."""
+        return self._update(name).render().copy()
+
+    def render_segmentation(self, name: str, option: mujoco.MjvOption | None = None) -> np.ndarray:
+        """(H, W) int geom id per pixel, -1 for background."""
+        r = self._renderer_for(name)
+        r.enable_segmentation_rendering()
+        try:
+            self._update(name, option)
+            seg = r.render()
+        finally:
+            r.disable_segmentation_rendering()
+        ids = seg[..., 0].copy()
+        ids[seg[..., 1] != int(mujoco.mjtObj.mjOBJ_GEOM)] = -1
+        return ids
+
+    def true_mask(self, name: str) -> np.ndarray:
+        """(H, W) bool: pixels where the tape is visible, from segmentation rendering."""
+        return self._is_tape_geom[self.render_segmentation(name)]
+
+    def _masks(self, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+        """(visible tape mask, ignore mask or None) from segmentation rendering."""
+        ids = self.render_segmentation(name)
+        visible = self._is_tape_geom[ids]
+        occluder = self._is_occluder[ids]
+        if not occluder.any():
+            return visible, None
+        # Where would the tape be without the arm? Render again with the arm and tools hidden.
+        hidden = mujoco.MjvOption()
+        hidden.geomgroup[:] = 0
+        hidden.geomgroup[GROUP_TAPE] = 1
+        full = self._is_tape_geom[self.render_segmentation(name, hidden)]
+        k = 2 * self.config.sim.ignore_dilate_px + 1
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+        ignore = cv2.dilate((full & occluder).astype(np.uint8), kernel).astype(bool)
+        return visible, (ignore if ignore.any() else None)
+
+    def capture(self, rgb: bool = False) -> Capture:
+        """A capture of the current state: the estimator's tape model (``estimator_plates``
+        plates) with the fixed base, one view per camera, and the ground truth.
+
+        Masks come from the estimator's OpenCV segmentation of the rendered RGB when
+        ``sim.mask_source = "rgb"``, else from segmentation rendering. ``rgb`` keeps the
+        images in the views."""
+        t0 = time.perf_counter()
+        views = []
+        use_rgb = self.config.sim.mask_source == "rgb"
+        for cam in self.cameras():
+            true_visible, ignore = self._masks(cam.name)
+            image = self.render_rgb(cam.name) if (use_rgb or rgb) else None
+            mask = segment_tape(image, self.segmentation_params) if use_rgb else true_visible
+            views.append(View(cam, mask, ignore, image if rgb else None))
+        spec = tape_spec(self.config, self.config.tape.estimator_plates)
+        self.timing = CaptureTiming(self.timing.settle_s, time.perf_counter() - t0)
+        return Capture(spec, views, self.truth(), segmentation=dict(self.segmentation_overrides))
