@@ -1,0 +1,179 @@
+"""Many sim episodes: parallel processes, a progress line, a resumable results file and a
+summary.
+
+``DIR/results.jsonl`` gets one `tape-episode/1` line as each episode ends (appended and
+flushed, so a crash loses nothing); a rerun skips the seeds already in it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing as mp
+import os
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable, TextIO
+
+import numpy as np
+
+from estimator.errors import TapecellError
+
+RESULTS = "results.jsonl"
+
+
+@dataclass(frozen=True)
+class EpisodeJob:
+    """What one worker runs: seed, number of cameras, where to write a recording (or None),
+    and the cell file (None = bundled)."""
+
+    seed: int
+    cameras: int
+    recording: Path | None
+    config: Path | None
+
+
+def load_results(path: Path) -> list[dict[str, Any]]:
+    """The episode lines already in ``path``; a torn last line (a crash mid-write) is skipped."""
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        line = line.strip()
+        if not line:
+            continue
+        try:
+            doc = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if isinstance(doc, dict) and doc.get("format") == "tape-episode/1":
+            out.append(doc)
+    return out
+
+
+def append_result(path: Path, doc: dict[str, Any]) -> None:
+    """Append one JSON line with a single write and fsync, so lines never interleave."""
+    data = (json.dumps(doc) + "\n").encode()
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    try:
+        os.write(fd, data)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
+    """95 % Wilson score interval of a success rate."""
+    if n == 0:
+        return (0.0, 1.0)
+    p = successes / n
+    denom = 1 + z * z / n
+    centre = (p + z * z / (2 * n)) / denom
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / denom
+    return (max(0.0, centre - half), min(1.0, centre + half))
+
+
+def _percentiles(values: list[float]) -> str:
+    if not values:
+        return "n/a"
+    v = np.asarray(values, float)
+    return (f"median {np.median(v):.2f}  p90 {np.percentile(v, 90):.2f}  "
+            f"max {v.max():.2f}")
+
+
+def summarize(results: list[dict[str, Any]], wall_s: float | None = None) -> str:
+    """Success rate with a 95 % interval, failure reasons, error percentiles, timings."""
+    n = len(results)
+    ok = sum(1 for r in results if r.get("success"))
+    lo, hi = wilson_interval(ok, n)
+    lines = [f"episodes {n}   success {ok}/{n} = {100 * ok / max(n, 1):.1f} %"
+             f"   (95 % interval {100 * lo:.1f}-{100 * hi:.1f} %)"]
+    reasons = Counter(r.get("failure") or "?" for r in results if not r.get("success"))
+    if reasons:
+        lines.append("failures: " + ", ".join(f"{k} x{v}" for k, v in reasons.most_common()))
+    tip = [r["tip_error_mm"] for r in results if r.get("tip_error_mm") is not None]
+    nrm = [r["normal_error_deg"] for r in results if r.get("normal_error_deg") is not None]
+    lines.append(f"tip error mm:     {_percentiles(tip)}")
+    lines.append(f"normal error deg: {_percentiles(nrm)}")
+    stages: dict[str, list[float]] = {}
+    for r in results:
+        for k, v in (r.get("time_s") or {}).items():
+            stages.setdefault(k, []).append(float(v))
+    if stages:
+        lines.append("time s (median):  " + "  ".join(f"{k} {np.median(v):.3f}" for k, v in stages.items())
+                     + f"  total {np.median([sum(r.get('time_s', {}).values()) for r in results]):.2f}")
+    if wall_s is not None and n:
+        lines.append(f"wall time {wall_s:.1f} s for this run")
+    for cams in sorted({r.get("cameras") for r in results if r.get("cameras")}):
+        sub = [r for r in results if r.get("cameras") == cams]
+        k = sum(1 for r in sub if r.get("success"))
+        lines.append(f"  {cams} cameras: {k}/{len(sub)} = {100 * k / len(sub):.1f} %")
+    return "\n".join(lines)
+
+
+class Progress:
+    """A one-line progress bar on a terminal, plain lines otherwise (CI logs)."""
+
+    def __init__(self, total: int, stream: TextIO = sys.stderr):
+        self.total, self.done, self.ok, self.stream = total, 0, 0, stream
+        self.start = time.perf_counter()
+        self.tty = stream.isatty()
+
+    def update(self, doc: dict[str, Any]) -> None:
+        self.done += 1
+        self.ok += bool(doc.get("success"))
+        elapsed = time.perf_counter() - self.start
+        eta = elapsed / self.done * (self.total - self.done)
+        width = 30
+        filled = int(width * self.done / max(self.total, 1))
+        status = "ok" if doc.get("success") else f"FAIL ({doc.get('failure')})"
+        msg = (f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
+               f"ok {self.ok}  eta {eta:5.0f} s  seed {doc.get('seed')} {status}")
+        if self.tty:
+            self.stream.write("\r" + msg.ljust(100))
+            if self.done == self.total:
+                self.stream.write("\n")
+        else:
+            self.stream.write(msg + "\n")
+        self.stream.flush()
+
+
+def _worker(job: EpisodeJob) -> dict[str, Any]:
+    from cell.episode import run_episode_safely
+    return run_episode_safely(job.seed, job.cameras, job.recording, job.config)
+
+
+def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, rrd_each: bool = False,
+                 config: Path | None = None, worker: Callable[[EpisodeJob], dict] = _worker) -> list[dict]:
+    """Run the episodes not yet in ``out/results.jsonl``; returns all results for these seeds."""
+    if jobs < 1:
+        raise TapecellError(f"--jobs must be 1 or more, got {jobs}")
+    out.mkdir(parents=True, exist_ok=True)
+    results_path = out / RESULTS
+    seeds = list(seeds)
+    done = {(r["seed"], r.get("cameras")): r for r in load_results(results_path)}
+    todo = [s for s in seeds if (s, cameras) not in done]
+    if len(todo) < len(seeds):
+        print(f"{len(seeds) - len(todo)} of {len(seeds)} episodes already in {results_path}; "
+              f"running {len(todo)}", file=sys.stderr)
+    job_list = [EpisodeJob(s, cameras, out / f"episode-{s:04d}.rrd" if rrd_each else None, config) for s in todo]
+    progress = Progress(len(job_list))
+    new = []
+    if jobs == 1 or len(job_list) <= 1:
+        for job in job_list:
+            doc = worker(job)
+            append_result(results_path, doc)
+            new.append(doc)
+            progress.update(doc)
+    else:
+        # spawn: each worker builds its own MuJoCo renderer (EGL contexts do not survive fork)
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(jobs, maxtasksperchild=50) as pool:
+            for doc in pool.imap_unordered(worker, job_list):
+                append_result(results_path, doc)
+                new.append(doc)
+                progress.update(doc)
+    by_seed = {(r["seed"], r.get("cameras")): r for r in load_results(results_path)}
+    return [by_seed[(s, cameras)] for s in seeds if (s, cameras) in by_seed]
