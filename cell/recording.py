@@ -66,6 +66,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from estimator.capture import Capture, Truth
+from estimator.errors import TapecellError
 from estimator.geometry import Camera
 from estimator.result import Estimate
 from estimator.silhouette import render_view
@@ -80,6 +81,10 @@ _ANNOTATIONS = [
 ]
 _AXIS_COLORS = np.array([[230, 40, 40], [40, 200, 40], [40, 80, 230]], dtype=np.uint8)
 FRAME_AXIS_LENGTH_M = 0.01  # tip/waypoint frame arrows: 10 mm, the scale of a plate
+
+
+class RecordingError(TapecellError):
+    """A recording file cannot be written."""
 
 
 class RecordingFile(rr.RecordingStream):
@@ -141,11 +146,16 @@ def open_recording(path: str | os.PathLike, app_id: str = "tapecell",
     layout with the cameras it is given.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_dir():
+        raise RecordingError(f"{path}: is a directory, expected an .rrd file name")
     # A unique hidden name rather than mkstemp, so the file gets the usual permissions.
     tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
     stream = RecordingFile(path, tmp, app_id)
-    stream.save(tmp, default_blueprint=default_blueprint(camera_names))
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        stream.save(tmp, default_blueprint=default_blueprint(camera_names))
+    except (OSError, RuntimeError) as e:  # rerun reports file errors as RuntimeError
+        raise RecordingError(f"{path}: cannot write the recording ({e})") from None
     return stream
 
 
@@ -277,8 +287,8 @@ def _log_tape_shape(stream: rr.RecordingStream, base: str, spec: TapeSpec,
     stream.log(base, rr.LineStrips3D([shape.nodes], radii=0.0004, colors=[[0, 160, 255]]))
     stream.log(f"{base}/nodes", rr.Points3D(shape.nodes, radii=0.0008, colors=[[0, 90, 200]]))
     n = len(quads)
-    tri = np.concatenate([np.stack([4 * np.arange(n), 4 * np.arange(n) + 1, 4 * np.arange(n) + 2], 1),
-                          np.stack([4 * np.arange(n), 4 * np.arange(n) + 2, 4 * np.arange(n) + 3], 1)])
+    first = 4 * np.arange(n)[:, None]  # each quad is two triangles (0, 1, 2), (0, 2, 3)
+    tri = np.concatenate([first + [0, 1, 2], first + [0, 2, 3]])
     stream.log(f"{base}/plates", rr.Mesh3D(vertex_positions=quads.reshape(-1, 3),
                                             triangle_indices=tri, albedo_factor=[0, 160, 255, 110]))
     outlines = np.concatenate([quads, quads[:, :1]], axis=1)  # closed loops
@@ -386,7 +396,8 @@ def log_arm_state(stream: rr.RecordingStream, t: float, flange_pose: np.ndarray,
     set_sim_time(stream, t)
     world_from_flange = np.asarray(flange_pose, float).reshape(4, 4)
     stream.log("world/arm/flange",
-               rr.Transform3D(translation=world_from_flange[:3, 3], mat3x3=world_from_flange[:3, :3]),
+               rr.Transform3D(translation=world_from_flange[:3, 3],
+                              mat3x3=world_from_flange[:3, :3]),
                rr.TransformAxes3D(0.05))
     stream.log("arm/joints", rr.Scalars(np.asarray(joints, float).reshape(-1)))
     if link_poses is not None and len(link_poses):

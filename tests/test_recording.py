@@ -11,6 +11,7 @@ from rerun.chunk import RrdReader
 
 from cell import recording as rec
 from estimator.capture import Capture, Truth, View
+from estimator.errors import TapecellError
 from estimator.geometry import Camera, rot_x, rot_z
 from estimator.result import Estimate
 from estimator.tape import TapeSpec, forward_kinematics
@@ -164,7 +165,9 @@ def test_tape_geometry_matches(recorded, scene):
     plates = _only(data, "world/tape/estimate/plates")
     np.testing.assert_allclose(np.array(plates["Mesh3D:vertex_positions"]), quads.reshape(-1, 3),
                                atol=1e-6)
-    assert len(plates["Mesh3D:triangle_indices"]) == 2 * len(quads)
+    triangles = np.array(plates["Mesh3D:triangle_indices"])
+    assert len(triangles) == 2 * len(quads)
+    assert sorted(set(triangles.ravel())) == list(range(4 * len(quads)))
     true_strip = np.array(_only(data, "world/tape/truth")["LineStrips3D:strips"][0])
     np.testing.assert_allclose(true_strip, truth.points, atol=1e-6)
 
@@ -354,6 +357,16 @@ def test_file_appears_only_on_close(scene, tmp_path):
     rec.close_recording(stream)
     assert path.is_file()
     assert rec.read_recording(path)["estimator/cost"][0]["Scalars:scalars"] == [1.0]
+
+
+def test_unwritable_path_is_a_clear_error(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    with pytest.raises(rec.RecordingError, match="cannot write the recording"):
+        rec.open_recording(blocker / "x.rrd")
+    with pytest.raises(rec.RecordingError, match="is a directory"):
+        rec.open_recording(tmp_path)
+    assert isinstance(rec.RecordingError("x"), TapecellError)
 
 
 @pytest.mark.skipif(shutil.which("rerun") is None, reason="rerun CLI not installed")
