@@ -5,12 +5,13 @@ returns the plate chain that explains them.
 """
 from .capture import Capture, Truth, View, load_cameras, load_capture, save_cameras, save_capture
 from .errors import CaptureError, EstimateError, TapecellError
+from .fit import estimate
 from .geometry import Camera
 from .result import Estimate
 from .tape import TapeShape, TapeSpec, forward_kinematics
 
 __all__ = [
     "Camera", "Capture", "CaptureError", "Estimate", "EstimateError", "TapeShape", "TapeSpec",
-    "TapecellError", "Truth", "View", "forward_kinematics", "load_cameras", "load_capture",
+    "TapecellError", "Truth", "View", "estimate", "forward_kinematics", "load_cameras", "load_capture",
     "save_cameras", "save_capture",
 ]
