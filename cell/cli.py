@@ -12,7 +12,7 @@ import sys
 
 from estimator.errors import TapecellError
 
-COMMANDS = ["estimate", "bench"]
+COMMANDS = ["estimate"]
 
 
 def build_parser() -> argparse.ArgumentParser:
