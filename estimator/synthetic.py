@@ -151,6 +151,14 @@ def _perturb(camera: Camera, rng: np.random.Generator, px: float) -> Camera:
 def make_capture(seed: int, options: SyntheticOptions = SyntheticOptions(),
                  n_plates: int = 5, length: float = 0.15, width: float = 0.03) -> Capture:
     """A random capture with its truth. Same seed and options, same capture."""
+    return make_capture_with_angles(seed, options, n_plates, length, width)[0]
+
+
+def make_capture_with_angles(seed: int, options: SyntheticOptions = SyntheticOptions(),
+                             n_plates: int = 5, length: float = 0.15,
+                             width: float = 0.03) -> tuple[Capture, np.ndarray]:
+    """:func:`make_capture` and the true joint angles of the rendered chain [rad]
+    ((n_plates, 3) for a chain, (60, 3) for a strip's fine segments)."""
     rng = np.random.default_rng(seed)
     base_rotation = _random_rotation(rng)
     base_position = rng.normal(scale=0.01, size=3)
@@ -181,7 +189,7 @@ def make_capture(seed: int, options: SyntheticOptions = SyntheticOptions(),
         views.append(View(_perturb(cam, rng, options.miscalibration_px), mask, ignore))
     s = np.concatenate([[0.0], np.cumsum(true_spec.segment_lengths)])
     truth = Truth(s, shape.nodes.copy(), shape.frames[-1].copy())
-    return Capture(spec, views, truth)
+    return Capture(spec, views, truth), angles
 
 
 def _render_shape(camera: Camera, shape: TapeShape) -> np.ndarray:

@@ -1,0 +1,129 @@
+"""The estimator's maths and fits, on captures rendered by our own renderer (seeded)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from estimator import estimate, forward_kinematics, load_capture, save_capture
+from estimator.capture import View
+from estimator.metrics import errors
+from estimator.paper import initial_simplex
+from estimator.silhouette import CostEvaluator, make_target, roi_of
+from estimator.synthetic import SyntheticOptions, make_capture, make_capture_with_angles, rig_cameras
+
+SAMPLES = Path(__file__).resolve().parents[2] / "shared" / "captures-sample"
+
+
+def _chain_capture(seed: int):
+    """A 5-plate chain rendered exactly like the model."""
+    return make_capture(seed, SyntheticOptions(kind="chain", cameras=2))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_projection_matches_opencv(seed):
+    rng = np.random.default_rng(seed)
+    cam = rig_cameras(rng, np.zeros(3), 2, distortion=True)[1]
+    cam = cam.__class__(cam.name, cam.width, cam.height, cam.K, np.array([*cam.dist[:2], 1e-3, -2e-3, 0.01]),
+                        cam.R, cam.t)
+    pts = rng.normal(scale=0.05, size=(50, 3))
+    rvec, _ = cv2.Rodrigues(cam.R)
+    ref, _ = cv2.projectPoints(pts, rvec, cam.t, cam.K, cam.dist)
+    assert np.allclose(cam.project(pts), ref.reshape(-1, 2), atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_cost_is_zero_at_truth(seed):
+    c, angles = make_capture_with_angles(seed, SyntheticOptions(kind="chain", cameras=3))
+    quads = forward_kinematics(c.tape, angles).quads()
+    full = CostEvaluator([make_target(v) for v in c.views])
+    assert np.all(full.view_costs(quads) == 0.0)
+    # the cropped evaluation charges the same, and a wrong shape costs more
+    cropped = CostEvaluator([make_target(v, roi=roi_of(v.mask, 5)) for v in c.views])
+    assert np.all(cropped.view_costs(quads) == 0.0)
+    wrong = forward_kinematics(c.tape, angles + 0.05).quads()
+    assert np.all(full.view_costs(wrong) > 0.01)
+    assert np.allclose(cropped.view_costs(wrong), full.view_costs(wrong), rtol=0.05)
+
+
+def test_ignored_pixels_do_not_count():
+    c = _chain_capture(6)
+    v = c.views[0]
+    ignore = np.zeros_like(v.mask)
+    ignore[:, : v.mask.shape[1] // 2] = True
+    wrong_mask = v.mask.copy()
+    wrong_mask[:, : v.mask.shape[1] // 2] = ~wrong_mask[:, : v.mask.shape[1] // 2]
+    quads = forward_kinematics(c.tape, np.zeros((5, 3))).quads()
+    a = CostEvaluator([make_target(View(v.camera, v.mask, ignore))]).view_costs(quads)
+    b = CostEvaluator([make_target(View(v.camera, wrong_mask, ignore))]).view_costs(quads)
+    assert a == pytest.approx(b)
+
+
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_default_recovers_rendered_chain(seed):
+    c = _chain_capture(seed)
+    est = estimate(c)
+    e = errors(est.nodes, est.tip_rotation, c.truth)
+    assert e.tip_m < 0.5e-3
+    assert est.view_costs.shape == (len(c.views),)
+    assert est.cost == pytest.approx(float(np.sqrt(np.sum(est.view_costs ** 2))))
+    assert est.history and est.time_s > 0
+
+
+def test_callback_sees_every_iteration():
+    c = _chain_capture(14)
+    seen = []
+    est = estimate(c, callback=lambda i, cost, angles: seen.append((i, cost, angles.shape)))
+    assert [s[0] for s in seen] == list(range(1, len(seen) + 1))
+    assert all(s[2] == (5, 3) for s in seen)
+    assert [s[1] for s in seen] == est.history
+
+
+def test_paper_method_runs_and_returns_valid_estimate():
+    c = _chain_capture(15)
+    seen = []
+    est = estimate(c, "paper", callback=lambda i, cost, a: seen.append(cost))
+    assert est.method == "paper" and est.angles.shape == (5, 3)
+    assert np.all(np.isfinite(est.nodes)) and len(est.view_costs) == 2
+    assert len(seen) == len(est.history) > 10
+    assert np.allclose(np.linalg.norm(np.diff(est.nodes, axis=0), axis=1), 0.03)
+    d = est.to_json()
+    assert d["format"] == "tape-estimate/1" and len(d["view_costs"]) == 2
+
+
+def test_initial_simplex_is_eq_9():
+    s = initial_simplex(np.array([0.1, 0.2, 0.3]), 0.5)
+    assert s.shape == (4, 3)
+    assert np.allclose(s[1:] - s[0], 0.5 * np.eye(3))
+
+
+def test_unknown_method_is_an_estimate_error():
+    from estimator import EstimateError
+    with pytest.raises(EstimateError):
+        estimate(_chain_capture(16), "magic")
+
+
+def test_capture_round_trips(tmp_path):
+    c = make_capture(17, SyntheticOptions(kind="strip", occluder=True, distortion=True, cameras=3))
+    save_capture(c, tmp_path / "cap")
+    back = load_capture(tmp_path / "cap")
+    assert len(back.views) == 3
+    for a, b in zip(c.views, back.views):
+        assert np.array_equal(a.mask, b.mask)
+        assert (a.ignore is None) == (b.ignore is None)
+        if a.ignore is not None:
+            assert np.array_equal(a.ignore, b.ignore)
+        assert np.allclose(a.camera.K, b.camera.K) and np.allclose(a.camera.dist, b.camera.dist)
+        assert np.allclose(a.camera.R, b.camera.R) and np.allclose(a.camera.t, b.camera.t)
+    assert np.allclose(back.truth.points, c.truth.points)
+    assert np.allclose(back.tape.base_rotation, c.tape.base_rotation)
+
+
+@pytest.mark.skipif(not SAMPLES.is_dir(), reason="shared sample captures not present")
+@pytest.mark.parametrize("name", ["clean-03", "distorted-01", "occluded-00", "noisy-01"])
+def test_sample_captures_estimate_within_loose_bound(name):
+    c = load_capture(SAMPLES / name)
+    est = estimate(c)
+    assert errors(est.nodes, est.tip_rotation, c.truth).tip_m < 10e-3
