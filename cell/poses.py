@@ -131,3 +131,10 @@ def _as_transform_or_pose(value: Any, what: str) -> np.ndarray:
     if arr.shape == (6,):
         return pose6_to_matrix(arr)
     return as_transform(arr, what)
+
+
+def pose_distance(a: Any, b: Any) -> tuple[float, float]:
+    """(position distance [m], rotation angle [rad]) between two pose6. Compare poses with
+    this, never element-wise: near a half turn ``r`` and ``-r`` are the same rotation."""
+    A, B = pose6_to_matrix(a), pose6_to_matrix(b)
+    return float(np.linalg.norm(A[:3, 3] - B[:3, 3])), rotation_angle_between(A[:3, :3], B[:3, :3])

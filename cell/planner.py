@@ -1,0 +1,443 @@
+"""Grasp planning at the tape's tip, and running a plan on any :class:`~cell.arm.Arm`.
+
+The gripper (cell file ``[tools.gripper]``) is a parallel two-finger gripper: its TCP sits
+midway between the pads, the pads close along the TCP's y axis and the fingers point along
+its z axis (out of the flange). The tape is 0.2 mm thick and 30 mm wide, so the only grip a
+parallel gripper can make is across the thickness: the closing axis (TCP y) lies along the
+tape's normal and the fingers straddle the tape, one pad on each face.
+
+Approach: along -trunk, i.e. the open jaw slides onto the tape's end from beyond the tip,
+like a fork. This is what a real parallel gripper can do with a curled, floppy tape: the
+tape is inside the jaw's 40 mm gap the whole way, so errors along the normal (the
+estimator's weakest direction) are absorbed by the gap, and the pads (12 mm along the
+tape's width, centred on its centre line) end up a few mm in from the end. A side approach
+(along the width) would reach only the 12 mm pad depth into a 30 mm wide tape; an approach
+along the normal is impossible, a finger would have to pass through the tape. When the
+straight approach is blocked (the tip points down, the part is in the way, or the arm
+cannot reach it) the approach is tilted about the normal by up to 40 deg, and the jaw may
+be turned half a turn about its own axis (the gripper is symmetric); the least tilted
+feasible variant wins.
+
+Plan: open; joint move to ``pregrasp`` (``pregrasp_distance`` back along the approach, clear
+of the tape); linear ``approach`` to ``grasp`` (TCP ``inset`` in from the tip along the
+trunk); close; linear ``lift`` by ``lift`` metres along the peel direction: between the
+surface normal of the part's top (world z) and the chord from the tape's fixed base to
+the grasp, which pulls the tape off the adhesive line while keeping the gripper clear of
+the part.
+
+Refusals raise :class:`PlanRefused` with ``reason`` one of "estimate rejected" (fit cost
+above the threshold), "unreachable" (no inverse kinematics, or a straight segment crosses a
+singularity / changes configuration), "limits" (workspace box or speeds), "collision"
+(keep-out box around the part, or the open fingers through the tape).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from estimator.errors import TapecellError
+
+from .arm import Arm, ArmError
+from .kinematics import ik_nearest
+from .poses import as_transform, interpolate_pose6, invert, matrix_to_pose6, pose6_to_matrix
+from .safety import SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move
+
+IK = Callable[[np.ndarray, np.ndarray], "np.ndarray | None"]
+"""ik(world_from_flange 4x4, q_near (6,)) -> joints (6,) nearest q_near, or None."""
+
+# Joints of the UR5e reaching over the part from above (elbow up, wrist down): the branch
+# the planner prefers when the caller does not say where the arm is.
+REFERENCE_JOINTS = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])
+APPROACH_TILTS_RAD = (0.0, np.radians(20.0), -np.radians(20.0), np.radians(40.0), -np.radians(40.0))
+MAX_JOINT_STEP_RAD = 0.25      # per ~5 mm of a straight segment: more means a singularity or a flip
+PATH_STEP_M = 0.005
+
+
+class PlanRefused(TapecellError):
+    """The planner will not grasp. ``reason`` is a short tag (see the module docstring)."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(f"grasp refused ({reason}): {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+@dataclass(frozen=True, eq=False)
+class TipFrame:
+    """The estimated tape tip. position (3,) [m] world; rotation (3, 3) world_from_tip with
+    columns trunk (outward along the tape), left (across the width), normal; cost: the
+    estimate's silhouette cost."""
+
+    position: np.ndarray
+    rotation: np.ndarray
+    cost: float
+
+    @property
+    def trunk(self) -> np.ndarray:
+        return self.rotation[:, 0]
+
+    @property
+    def normal(self) -> np.ndarray:
+        return self.rotation[:, 2]
+
+    @classmethod
+    def from_estimate(cls, estimate: Any) -> "TipFrame":
+        """From an ``estimator.Estimate`` (its tip frame and cost)."""
+        return cls(np.asarray(estimate.tip_position, float), np.asarray(estimate.tip_rotation, float),
+                   float(estimate.cost))
+
+
+@dataclass(frozen=True)
+class GraspParams:
+    """cost_threshold: refuse estimates above it; inset [m]: TCP this far in from the tip;
+    pregrasp_distance [m]: start of the approach, back along it; lift [m]: length of the peel."""
+
+    cost_threshold: float
+    inset: float
+    pregrasp_distance: float
+    lift: float
+
+    @classmethod
+    def from_config(cls, section: Any) -> "GraspParams":
+        """From the cell file's ``[grasp]`` section (``sim.config.GraspSection``)."""
+        return cls(float(section.cost_threshold), float(section.inset), float(section.pregrasp_distance),
+                   float(section.lift))
+
+
+@dataclass(frozen=True, eq=False)
+class GripperGeometry:
+    """flange_from_tcp: 4x4; max_opening [m] between the pads; pad_size (3,) [m] full
+    extents (x along the jaw, y thickness, z depth); finger_length [m] from the pad centre
+    back towards the flange, where the palm starts."""
+
+    flange_from_tcp: np.ndarray
+    max_opening: float
+    pad_size: np.ndarray
+    finger_length: float = 0.05
+
+    @classmethod
+    def from_config(cls, tool: Any) -> "GripperGeometry":
+        """From the cell file's ``[tools.gripper]`` (``sim.config.GripperTool``)."""
+        return cls(pose6_to_matrix(tool.flange_from_tcp), float(tool.max_opening),
+                   np.asarray(tool.pad_size, float))
+
+    def finger_boxes_tcp(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(lo, hi) boxes in the TCP frame of the two open fingers and the palm."""
+        hx, ty, hz = self.pad_size[0] / 2, self.pad_size[1], self.pad_size[2] / 2
+        g = self.max_opening / 2
+        boxes = [(np.array([-hx, s0, -self.finger_length]), np.array([hx, s1, hz]))
+                 for s0, s1 in ((g, g + ty), (-g - ty, -g))]
+        boxes.append((np.array([-hx, -g - ty, -self.finger_length - 0.02]),
+                      np.array([hx, g + ty, -self.finger_length])))
+        return boxes
+
+    def check_points_flange(self) -> np.ndarray:
+        """(k, 3) points in the flange frame for the safety check: the TCP and the corners of
+        the open fingers' boxes."""
+        pts = [np.zeros(3)]
+        for lo, hi in self.finger_boxes_tcp()[:2]:
+            pts += [np.array([x, y, z]) for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        pts = np.array(pts)
+        return (self.flange_from_tcp @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
+
+
+@dataclass(frozen=True, eq=False)
+class Waypoint:
+    """name; world_from_tcp 4x4 (the gripper's TCP); flange_pose (6,) [x, y, z, rx, ry, rz]
+    base frame, what the arm is sent; q (6,) [rad] the inverse-kinematics solution."""
+
+    name: str
+    world_from_tcp: np.ndarray
+    flange_pose: np.ndarray
+    q: np.ndarray
+
+
+@dataclass(frozen=True)
+class Step:
+    """action: "open_gripper", "close_gripper", "move_joints" or "move_linear"; waypoint:
+    the target's name for moves."""
+
+    action: str
+    waypoint: str | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class GraspPlan:
+    """Waypoints (in visiting order), the steps that run them, the tip it was planned for,
+    the approach variant chosen, and the flange-frame check points of the gripper."""
+
+    waypoints: tuple[Waypoint, ...]
+    steps: tuple[Step, ...]
+    tip: TipFrame
+    approach_tilt_rad: float
+    flipped: bool
+    points_flange: np.ndarray
+    lift_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+
+    def waypoint(self, name: str) -> Waypoint:
+        for w in self.waypoints:
+            if w.name == name:
+                return w
+        raise KeyError(name)
+
+    def tool_waypoints(self) -> dict[str, np.ndarray]:
+        """name -> world_from_tcp 4x4, in visiting order (for ``cell.recording.log_plan``)."""
+        return {w.name: w.world_from_tcp for w in self.waypoints}
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "waypoints": [{"name": w.name, "tcp_position": w.world_from_tcp[:3, 3].tolist(),
+                           "tcp_rotation": w.world_from_tcp[:3, :3].tolist(),
+                           "flange_pose": w.flange_pose.tolist(), "joints": w.q.tolist()}
+                          for w in self.waypoints],
+            "steps": [[s.action, s.waypoint] for s in self.steps],
+            "approach_tilt_deg": float(np.degrees(self.approach_tilt_rad)),
+            "flipped": self.flipped,
+            "lift_direction": self.lift_direction.tolist(),
+        }
+
+    def describe(self) -> str:
+        """Human-readable plan, one line a step (what ``tapecell run`` shows before moving)."""
+        lines = [f"grasp plan (approach tilt {np.degrees(self.approach_tilt_rad):+.0f} deg"
+                 f"{', jaw turned' if self.flipped else ''}):"]
+        for s in self.steps:
+            if s.waypoint is None:
+                lines.append(f"  {s.action}")
+            else:
+                w = self.waypoint(s.waypoint)
+                p = w.world_from_tcp[:3, 3] * 1000
+                f = ", ".join(f"{v:.4f}" for v in w.flange_pose)
+                lines.append(f"  {s.action:<12} {w.name:<9} TCP [{p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}] mm"
+                             f"  flange [{f}]")
+        return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------ planning
+def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, limits: SafetyLimits, *,
+               ik: IK = ik_nearest, q_start: Any = None, tape_points: Any = None,
+               tape_base: Any = None) -> GraspPlan:
+    """Plan a grasp of the tape at ``tip`` or raise :class:`PlanRefused`.
+
+    ik: inverse kinematics (default the UR5e's closed form). q_start (6,): where the arm is
+    (the joint move to pre-grasp is checked from there, and the nearest configuration is
+    chosen); default :data:`REFERENCE_JOINTS`. tape_points (N, 3): the estimated centre line
+    (e.g. ``Estimate.nodes``), checked against the open fingers. tape_base (3,): where the
+    tape is stuck on the part (default ``tape_points[0]``), for the peel direction.
+    """
+    if not np.isfinite(tip.cost) or tip.cost > params.cost_threshold:
+        raise PlanRefused("estimate rejected", f"fit cost {tip.cost:.4g} is above the threshold "
+                                               f"{params.cost_threshold:.4g}")
+    R_tip = np.asarray(tip.rotation, float)
+    if not np.allclose(R_tip.T @ R_tip, np.eye(3), atol=1e-4) or np.linalg.det(R_tip) < 0:
+        raise PlanRefused("estimate rejected", "the tip rotation is not a rotation matrix")
+    q_ref = REFERENCE_JOINTS if q_start is None else np.asarray(q_start, float)
+    tape = None if tape_points is None else _densify(np.asarray(tape_points, float), 0.002)
+    if tape_base is None and tape_points is not None:
+        tape_base = np.asarray(tape_points, float)[0]
+    grasp_position = tip.position - params.inset * tip.trunk
+    lift_dir = _lift_direction(grasp_position, tape_base)
+    refusals: list[PlanRefused] = []
+    for tilt in APPROACH_TILTS_RAD:
+        for flipped in (False, True):
+            try:
+                return _plan_variant(tip, grasp_position, lift_dir, tilt, flipped, params, gripper, limits,
+                                     ik, q_ref, q_start is not None, tape)
+            except PlanRefused as e:
+                refusals.append(e)
+    first = refusals[0]
+    raise PlanRefused(first.reason, f"{first.detail} (and for all {len(refusals)} approach variants)")
+
+
+def _lift_direction(grasp_position: np.ndarray, tape_base: Any) -> np.ndarray:
+    up = np.array([0.0, 0.0, 1.0])
+    if tape_base is None:
+        return up
+    chord = grasp_position - np.asarray(tape_base, float)
+    n = np.linalg.norm(chord)
+    d = up + (chord / n if n > 1e-6 else 0.0)
+    return d / np.linalg.norm(d)
+
+
+def tcp_rotation(tip: TipFrame, tilt: float, flipped: bool) -> np.ndarray:
+    """world_from_tcp rotation: y (closing axis) along the tape normal, z (approach) along
+    -trunk tilted by ``tilt`` rad about the normal; ``flipped`` turns the jaw half a turn."""
+    t, w, n = tip.rotation[:, 0], tip.rotation[:, 1], tip.rotation[:, 2]
+    y = -n if flipped else n
+    z = np.cos(tilt) * (-t) + np.sin(tilt) * w   # rotating -t about n stays in the tape's plane
+    z /= np.linalg.norm(z)
+    y = y - z * (y @ z)
+    y /= np.linalg.norm(y)
+    return np.column_stack([np.cross(y, z), y, z])
+
+
+def _plan_variant(tip, grasp_position, lift_dir, tilt, flipped, params, gripper, limits, ik, q_ref,
+                  check_joint_path, tape) -> GraspPlan:
+    R = tcp_rotation(tip, tilt, flipped)
+    approach = R[:, 2]
+    world_from_tcp = {
+        "pregrasp": _T(R, grasp_position - params.pregrasp_distance * approach),
+        "grasp": _T(R, grasp_position),
+        "lift": _T(R, grasp_position + params.lift * lift_dir),
+    }
+    tcp_from_flange = invert(gripper.flange_from_tcp)
+    flange = {k: matrix_to_pose6(T @ tcp_from_flange) for k, T in world_from_tcp.items()}
+    points = gripper.check_points_flange()
+    try:
+        check_linear_move(limits, flange["pregrasp"], flange["pregrasp"], limits.max_tcp_speed,
+                          limits.max_tcp_accel, points)
+        check_linear_move(limits, flange["pregrasp"], flange["grasp"], limits.max_tcp_speed,
+                          limits.max_tcp_accel, points)
+        check_linear_move(limits, flange["grasp"], flange["lift"], limits.max_tcp_speed,
+                          limits.max_tcp_accel, points)
+    except SafetyError as e:
+        raise PlanRefused("collision" if "keep-out" in str(e) else "limits", str(e)) from None
+    if tape is not None:
+        _check_fingers_clear(tape, world_from_tcp["pregrasp"], world_from_tcp["grasp"], gripper)
+    q_pre = ik(pose6_to_matrix(flange["pregrasp"]), q_ref)
+    if q_pre is None:
+        p = world_from_tcp["pregrasp"][:3, 3]
+        raise PlanRefused("unreachable", f"no joint solution puts the gripper at the pre-grasp pose "
+                                         f"(TCP at {_mm(p)} mm)")
+    if check_joint_path:
+        try:
+            check_joint_move(limits, q_ref, q_pre, limits.max_joint_speed, limits.max_joint_accel, points)
+        except SafetyError as e:
+            raise PlanRefused("collision" if "keep-out" in str(e) else "limits",
+                              f"joint move to the pre-grasp pose: {e}") from None
+    q_grasp = _follow_line(ik, flange["pregrasp"], flange["grasp"], q_pre, "approach")
+    q_lift = _follow_line(ik, flange["grasp"], flange["lift"], q_grasp, "lift")
+    q = {"pregrasp": q_pre, "grasp": q_grasp, "lift": q_lift}
+    waypoints = tuple(Waypoint(k, world_from_tcp[k], flange[k], q[k]) for k in ("pregrasp", "grasp", "lift"))
+    steps = (Step("open_gripper"), Step("move_joints", "pregrasp"), Step("move_linear", "grasp"),
+             Step("close_gripper"), Step("move_linear", "lift"))
+    return GraspPlan(waypoints, steps, tip, float(tilt), bool(flipped), points, lift_dir)
+
+
+def _follow_line(ik: IK, start: np.ndarray, end: np.ndarray, q0: np.ndarray, what: str) -> np.ndarray:
+    """Joints at ``end`` after following the straight flange line from ``start``, keeping
+    one configuration (as ``moveL`` does); refuse where the line leaves the reachable set or
+    passes a singularity (a large joint step between nearby samples)."""
+    n = int(np.ceil(np.linalg.norm(end[:3] - start[:3]) / PATH_STEP_M)) + 1
+    q = q0
+    for pose in interpolate_pose6(start, end, n + 1)[1:]:
+        q_next = ik(pose6_to_matrix(pose), q)
+        if q_next is None:
+            raise PlanRefused("unreachable", f"the {what} leaves the arm's reach near flange {_mm(pose[:3])} mm")
+        if np.max(np.abs(q_next - q)) > MAX_JOINT_STEP_RAD:
+            raise PlanRefused("unreachable", f"the {what} passes a singularity near flange {_mm(pose[:3])} mm")
+        q = q_next
+    return q
+
+
+def _check_fingers_clear(tape: np.ndarray, start: np.ndarray, end: np.ndarray, gripper: GripperGeometry) -> None:
+    """Refuse when a tape point lies inside an open finger or the palm anywhere on the
+    approach from ``start`` to ``end`` (world_from_tcp)."""
+    boxes = gripper.finger_boxes_tcp()
+    n = int(np.ceil(np.linalg.norm(end[:3, 3] - start[:3, 3]) / 0.002)) + 1
+    for s in np.linspace(0.0, 1.0, n + 1):
+        T = start.copy()
+        T[:3, 3] = start[:3, 3] + s * (end[:3, 3] - start[:3, 3])
+        local = (tape - T[:3, 3]) @ T[:3, :3]
+        for i, (lo, hi) in enumerate(boxes):
+            inside = np.all((local > lo) & (local < hi), axis=1)
+            if np.any(inside):
+                part = "palm" if i == 2 else "finger"
+                raise PlanRefused("collision", f"the open gripper's {part} would hit the tape near "
+                                               f"{_mm(tape[np.argmax(inside)])} mm on the approach")
+
+
+def _densify(points: np.ndarray, step: float) -> np.ndarray:
+    out = [points[:1]]
+    for a, b in zip(points[:-1], points[1:]):
+        k = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1)
+        out.append(a + (b - a) * np.linspace(0, 1, k + 1)[1:, None])
+    return np.concatenate(out)
+
+
+def _T(R: np.ndarray, p: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, p
+    return T
+
+
+def _mm(p: np.ndarray) -> str:
+    return "[" + ", ".join(f"{v * 1000:.1f}" for v in p) + "]"
+
+
+# ------------------------------------------------------------------------------ execution
+@dataclass(frozen=True)
+class Speeds:
+    """joint [rad/s], joint_accel [rad/s^2] for the move to pre-grasp; linear [m/s] and
+    linear_accel [m/s^2] for the approach and the lift (slow: contact and peeling)."""
+
+    joint: float = 0.8
+    joint_accel: float = 1.0
+    approach: float = 0.05
+    lift: float = 0.03
+    linear_accel: float = 0.5
+
+
+def execute_plan(plan: GraspPlan, arm: Arm, limits: SafetyLimits, speeds: Speeds = Speeds(),
+                 on_step: Callable[[Step, Arm], None] | None = None) -> list[Step]:
+    """Run ``plan`` on a connected ``arm``; every motion is checked against ``limits``
+    (through :class:`~cell.safety.SafeArm`, with the gripper's check points) before it is
+    sent. The whole plan and the speeds are checked before the first motion, so a plan that
+    would violate a limit halfway never starts. On any error the arm is stopped and the
+    error re-raised. ``on_step(step, arm)`` is called after each step (logging). Returns
+    the steps done."""
+    safe = SafeArm(arm, limits, extra_points_flange=plan.points_flange)
+    _precheck(plan, limits, speeds)
+    done: list[Step] = []
+    try:
+        for step in plan.steps:
+            _run_step(safe, plan, step, speeds)
+            if safe.is_protective_stopped():
+                from .arm import ProtectiveStopError
+                raise ProtectiveStopError(f"{arm.name} is in a protective stop after {step.action}")
+            done.append(step)
+            if on_step is not None:
+                on_step(step, arm)
+    except BaseException:
+        if arm.is_connected:
+            try:
+                arm.stop()
+            except ArmError:
+                pass  # the original error says more
+        raise
+    return done
+
+
+def _precheck(plan: GraspPlan, limits: SafetyLimits, speeds: Speeds) -> None:
+    if speeds.joint > limits.max_joint_speed or speeds.joint_accel > limits.max_joint_accel:
+        raise SafetyError(f"plan joint speed {speeds.joint:g} rad/s / acceleration {speeds.joint_accel:g} "
+                          f"rad/s^2 exceeds the limits {limits.max_joint_speed:g} / {limits.max_joint_accel:g}")
+    for v in (speeds.approach, speeds.lift):
+        if v > limits.max_tcp_speed:
+            raise SafetyError(f"plan speed {v:g} m/s exceeds the limit {limits.max_tcp_speed:g} m/s")
+    if speeds.linear_accel > limits.max_tcp_accel:
+        raise SafetyError(f"plan acceleration {speeds.linear_accel:g} m/s^2 exceeds the limit "
+                          f"{limits.max_tcp_accel:g} m/s^2")
+    previous = None
+    for step in plan.steps:
+        if step.waypoint is None:
+            continue
+        target = plan.waypoint(step.waypoint).flange_pose
+        start = target if previous is None or step.action == "move_joints" else previous
+        check_linear_move(limits, start, target, speeds.approach, speeds.linear_accel, plan.points_flange)
+        previous = target
+
+
+def _run_step(arm: Arm, plan: GraspPlan, step: Step, speeds: Speeds) -> None:
+    if step.action == "open_gripper":
+        arm.open_gripper()
+    elif step.action == "close_gripper":
+        arm.close_gripper()
+    elif step.action == "move_joints":
+        arm.move_joints(plan.waypoint(step.waypoint).q, speeds.joint, speeds.joint_accel)
+    elif step.action == "move_linear":
+        speed = speeds.lift if step.waypoint == "lift" else speeds.approach
+        arm.move_linear(plan.waypoint(step.waypoint).flange_pose, speed, speeds.linear_accel)
+    else:
+        raise ArmError(f"unknown plan step '{step.action}'")
