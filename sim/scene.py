@@ -26,6 +26,13 @@ GROUP_WORLD, GROUP_TAPE, GROUP_ARM, GROUP_PLATE, GROUP_NEEDLE, GROUP_GRIPPER = r
 TOOL_GROUPS = {"plate": GROUP_PLATE, "needle": GROUP_NEEDLE, "gripper": GROUP_GRIPPER}
 TAPE_HINGES = ("edge", "flat", "twist")   # joint order in each plate body: Rz, Ry, Rx
 PAD_CONTYPE = 2
+# Contacts act this far out from the sub-millimetre plates, so the pads cannot squeeze
+# through a plate within a timestep.
+TAPE_MARGIN = 0.0005
+# Pad-tape contacts as a direct spring-damper (N/m, N s/m): MuJoCo's default contact
+# stiffness scales with the colliding bodies' mass, and a 40 mg plate squeezed by a
+# 6 N finger would let the pads pass through it.
+CONTACT_SOLREF = (-2.0e5, -300.0)
 OVERLAP = 0.2   # fraction of a plate each tape plate overlaps the next
 
 
@@ -140,7 +147,8 @@ def _add_tape(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
         reach = L if i == t.plates - 1 else L * (1.0 + OVERLAP)
         body.add_geom(name=f"tape_{i}", type=mujoco.mjtGeom.mjGEOM_BOX,
                       size=[reach / 2, t.width / 2, t.thickness / 2], pos=[reach / 2, 0, 0], mass=mass,
-                      rgba=list(t.rgba), contype=0, conaffinity=PAD_CONTYPE, condim=3,
+                      rgba=list(t.rgba), contype=0, conaffinity=PAD_CONTYPE, condim=3, margin=TAPE_MARGIN,
+                      solref=list(CONTACT_SOLREF),
                       friction=[t.friction, 0.005, 0.0001], group=GROUP_TAPE)
         parent = body
     parent.add_site(name="tape_tip", pos=[L, 0, 0], size=[0.002, 0, 0], group=5)
@@ -172,7 +180,7 @@ def _add_tools(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
     # Cross plate: white plate, black cross raised 0.3 mm; the TCP is the cross's top centre.
     pl = cfg.tools.plate
     body = _tool_body(spec, cfg, "plate")
-    bar_h = 0.0003
+    bar_h = 0.00003  # a printed cross: raised walls would shift the seen centre sideways
     body.add_geom(name="plate", type=box, size=[pl.size / 2, pl.size / 2, pl.thickness / 2],
                   pos=[0, 0, -bar_h - pl.thickness / 2], rgba=[0.95, 0.95, 0.95, 1], contype=0, conaffinity=0,
                   group=GROUP_PLATE, mass=0.2)
@@ -180,7 +188,7 @@ def _add_tools(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
                               [pl.cross_width / 2, pl.cross_length / 2, bar_h / 2])):
         body.add_geom(name=f"plate_cross_{k}", type=box, size=size, pos=[0, 0, -bar_h / 2], rgba=[0.02, 0.02, 0.02, 1],
                       contype=0, conaffinity=0, group=GROUP_PLATE, mass=0.001)
-    _stem(body, _flange_in_tcp(cfg, "plate"), np.array([0, 0, -bar_h - pl.thickness]), 0.01,
+    _stem(body, _flange_in_tcp(cfg, "plate"), np.array([0, 0, -bar_h - pl.thickness - 0.01]), 0.01,  # cap stays behind the plate
           [0.3, 0.3, 0.3, 1], GROUP_PLATE, "plate_stem")
     # Needle: its tip is the TCP.
     nd = cfg.tools.needle
@@ -218,7 +226,7 @@ def _add_gripper(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
                    rgba=[0.25, 0.25, 0.27, 1], contype=0, conaffinity=0, group=GROUP_GRIPPER, mass=0.05)
         f.add_geom(name=f"pad_{side}", type=box, size=[px / 2, py / 2, pz / 2], pos=[0, sgn * py / 2, 0],
                    rgba=[0.1, 0.1, 0.1, 1], contype=PAD_CONTYPE, conaffinity=0, condim=3,
-                   friction=[gr.friction, 0.005, 0.0001], solref=[0.004, 1.0], solimp=[0.95, 0.99, 0.0005, 0.5, 2],
+                   friction=[gr.friction, 0.005, 0.0001], solref=list(CONTACT_SOLREF), solimp=[0.95, 0.99, 0.0005, 0.5, 2],
                    group=GROUP_GRIPPER, mass=0.01)
 
 

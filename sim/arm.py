@@ -1,0 +1,185 @@
+"""The simulated UR5e: joint and TCP moves, gripper, state, all simulated physically.
+
+Moves stream position targets to the arm's actuators every physics step, so the tape
+(and anything the gripper holds) is simulated along the way. Poses are world (= base)
+frame 4x4 transforms or UR-style ``[x, y, z, rx, ry, rz]`` vectors; the TCP is the
+selected tool's point (``flange``, ``plate``, ``needle``, ``gripper``) from the cell file.
+Knows nothing of ur_rtde; ``cell`` puts this behind the same interface as the real arm.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from estimator.errors import TapecellError
+
+from .cell import SimCell
+from .config import TOOL_NAMES, matrix_to_pose, pose_to_matrix
+from .ur5e import JOINT_LOWER, JOINT_UPPER, IKError, dh_fk, ik
+
+_WAYPOINT_STEPS = 10   # a Cartesian move solves IK every this many physics steps
+
+
+class SimArmError(TapecellError):
+    """A simulated move was refused or did not arrive."""
+
+
+def as_matrix(pose) -> np.ndarray:
+    """A 4x4 transform from a 4x4 or a ``[x, y, z, rx, ry, rz]`` pose."""
+    p = np.asarray(pose, float)
+    if p.shape == (4, 4):
+        return p
+    if p.shape == (6,):
+        return pose_to_matrix(p)
+    raise SimArmError(f"a pose must be a 4x4 matrix or [x, y, z, rx, ry, rz], got shape {list(p.shape)}")
+
+
+class SimArm:
+    """The UR5e of a :class:`SimCell`. ``tool`` selects the TCP ("flange" or a tool name)."""
+
+    def __init__(self, cell: SimCell, tool: str | None = None):
+        self.cell = cell
+        self.tool = "flange"
+        self.select_tool(tool or cell.mounted_tool)
+
+    # ------------------------------------------------------------------ state
+    def select_tool(self, tool: str) -> None:
+        """Use ``tool``'s TCP for poses; a real tool is also mounted (shown) in the cell."""
+        if tool != "flange" and tool not in TOOL_NAMES:
+            raise SimArmError(f"unknown tool '{tool}' (known: flange, {', '.join(TOOL_NAMES)})")
+        if tool != "flange":
+            self.cell.mount_tool(tool)
+        self.tool = tool
+
+    def flange_from_tcp(self, tool: str | None = None) -> np.ndarray:
+        return self.cell.config.tools.flange_from_tcp(tool or self.tool)
+
+    def joints(self) -> np.ndarray:
+        """(6,) measured joint angles [rad]."""
+        return self.cell.data.qpos[self.cell.arm_qadr].copy()
+
+    def tcp_pose(self, tool: str | None = None) -> np.ndarray:
+        """4x4 world_from_tcp of the simulated arm (from MuJoCo, not from the DH model)."""
+        d, m = self.cell.data, self.cell.model
+        fid = m.body("flange").id
+        world_from_flange = np.eye(4)
+        world_from_flange[:3, :3] = d.xmat[fid].reshape(3, 3)
+        world_from_flange[:3, 3] = d.xpos[fid]
+        return world_from_flange @ self.flange_from_tcp(tool)
+
+    def tcp_pose_vector(self, tool: str | None = None) -> np.ndarray:
+        """[x, y, z, rx, ry, rz] of :meth:`tcp_pose` (as ur_rtde's getActualTCPPose)."""
+        return matrix_to_pose(self.tcp_pose(tool))
+
+    def gripper_opening(self) -> float:
+        """Distance between the pads [m]."""
+        return float(self.cell.data.qpos[self.cell.finger_qadr].sum())
+
+    # ---------------------------------------------------------------- kinematics
+    def ik(self, pose, tool: str | None = None, q_seed: np.ndarray | None = None) -> np.ndarray:
+        """Joints [rad] that put ``tool``'s TCP at ``pose``, nearest ``q_seed`` (default: now).
+        Raises :class:`IKError` when unreachable within the joint limits."""
+        seed = self.joints() if q_seed is None else np.asarray(q_seed, float)
+        return ik(as_matrix(pose), seed, self.flange_from_tcp(tool)).q
+
+    def fk(self, q: np.ndarray, tool: str | None = None) -> np.ndarray:
+        """4x4 world_from_tcp at joints ``q`` by the DH model."""
+        return dh_fk(np.asarray(q, float)) @ self.flange_from_tcp(tool)
+
+    # -------------------------------------------------------------------- moves
+    def move_joints(self, q, speed: float | None = None, settle_s: float = 1.0) -> np.ndarray:
+        """Move to joints ``q`` [rad] at ``speed`` rad/s (the fastest joint; default from the
+        cell file), simulating every step; returns the joints reached."""
+        q = np.asarray(q, float)
+        if q.shape != (6,) or not np.all(np.isfinite(q)):
+            raise SimArmError(f"joint target must be 6 finite angles, got {q.tolist()}")
+        if np.any(q < JOINT_LOWER) or np.any(q > JOINT_UPPER):
+            raise SimArmError(f"joint target {np.round(q, 4).tolist()} is outside the joint limits")
+        speed = speed or self.cell.config.arm.max_joint_speed
+        q0 = self.cell.data.ctrl[self.cell.arm_actuators].copy()
+        dt = self.cell.model.opt.timestep
+        n = max(1, int(np.ceil(np.abs(q - q0).max() / speed / dt)))
+        for i in range(1, n + 1):
+            self._command(q0 + (q - q0) * (i / n))
+            self.cell.step(1)
+        return self._wait(q, settle_s)
+
+    def move_tcp(self, pose, speed: float = 0.1, tool: str | None = None, settle_s: float = 1.0) -> np.ndarray:
+        """Move the TCP along a straight line (position) and a slerp (orientation) to
+        ``pose`` at ``speed`` m/s (rotation at most 1 rad/s), as moveL does; IK is solved
+        along the way. Returns the joints reached."""
+        target = as_matrix(pose)
+        start = self.fk(self.cell.data.ctrl[self.cell.arm_actuators], tool)
+        q_goal = self.ik(target, tool, self.cell.data.ctrl[self.cell.arm_actuators])  # fail before moving
+        dist = np.linalg.norm(target[:3, 3] - start[:3, 3])
+        rots = Rotation.from_matrix(np.stack([start[:3, :3], target[:3, :3]]))
+        angle = (rots[1] * rots[0].inv()).magnitude()
+        dt = self.cell.model.opt.timestep
+        duration = max(dist / speed, angle / 1.0, dt)
+        n_way = max(1, int(np.ceil(duration / dt / _WAYPOINT_STEPS)))
+        slerp = Slerp([0.0, 1.0], rots)
+        q_prev = self.cell.data.ctrl[self.cell.arm_actuators].copy()
+        for k in range(1, n_way + 1):
+            s = k / n_way
+            T = np.eye(4)
+            T[:3, :3] = slerp([s]).as_matrix()[0]
+            T[:3, 3] = start[:3, 3] + s * (target[:3, 3] - start[:3, 3])
+            q_next = q_goal if k == n_way else self.ik(T, tool, q_prev)
+            for i in range(1, _WAYPOINT_STEPS + 1):
+                self._command(q_prev + (q_next - q_prev) * (i / _WAYPOINT_STEPS))
+                self.cell.step(1)
+            q_prev = q_next
+        return self._wait(q_goal, settle_s)
+
+    def park(self) -> np.ndarray:
+        """Move to the cell file's park joints, out of every camera's view."""
+        return self.move_joints(self.cell.config.arm.park_joints)
+
+    def home(self) -> np.ndarray:
+        return self.move_joints(self.cell.config.arm.home_joints)
+
+    def open_gripper(self, settle_s: float = 0.5) -> float:
+        """Open the gripper fully; returns the pad distance [m]."""
+        return self._move_fingers(self.cell.config.tools.gripper.max_opening / 2, settle_s)
+
+    def close_gripper(self, settle_s: float = 0.5) -> float:
+        """Close the gripper (squeezing whatever is between the pads); returns the pad distance [m]."""
+        return self._move_fingers(-0.002, settle_s)
+
+    # ----------------------------------------------------------------- helpers
+    def _command(self, q: np.ndarray) -> None:
+        self.cell.data.ctrl[self.cell.arm_actuators] = q
+
+    def _wait(self, q: np.ndarray, settle_s: float) -> np.ndarray:
+        """Step until the joints are within tolerance of ``q`` and nearly still. A load (the
+        tape in the gripper) leaves a small steady offset under the position servos: still
+        for 0.1 s within 10x the tolerance counts as arrived too."""
+        d = self.cell.data
+        tol = self.cell.config.arm.joint_tolerance
+        dt = self.cell.model.opt.timestep
+        still_steps = 0
+        for _ in range(int(round(settle_s / dt))):
+            err = np.abs(d.qpos[self.cell.arm_qadr] - q).max()
+            still = np.abs(d.qvel[self.cell.arm_dofs]).max() < 0.01
+            still_steps = still_steps + 1 if still else 0
+            if still and (err < tol or (err < 10 * tol and still_steps * dt >= 0.1)):
+                return self.joints()
+            self.cell.step(1)
+        err = np.abs(d.qpos[self.cell.arm_qadr] - q).max()
+        raise SimArmError(f"the simulated arm did not reach its target (joint error {err:.4f} rad after {settle_s} s)")
+
+    def _move_fingers(self, target: float, settle_s: float) -> float:
+        d = self.cell.data
+        d.ctrl[self.cell.finger_actuators] = target
+        n = int(round(settle_s / self.cell.model.opt.timestep))
+        prev = d.qpos[self.cell.finger_qadr].copy()
+        for i in range(n):
+            self.cell.step(1)
+            q = d.qpos[self.cell.finger_qadr]
+            if i > 50 and np.abs(q - prev).max() < 1e-7:
+                break
+            prev = q.copy()
+        return self.gripper_opening()
+
+
+__all__ = ["SimArm", "SimArmError", "IKError", "as_matrix"]
