@@ -232,6 +232,14 @@ class GraspSection:
 
 
 @dataclass(frozen=True)
+class EpisodeSection:
+    """Sim episodes: cameras_file is a tape-cameras/1 file (relative to the cell file) to
+    estimate with, e.g. from ``tapecell calibrate --sim``; empty uses the simulator's true
+    cameras."""
+    cameras_file: str
+
+
+@dataclass(frozen=True)
 class CellConfig:
     """The whole cell file. ``source`` is the file it was read from."""
     sim: SimSection
@@ -246,6 +254,7 @@ class CellConfig:
     calibration: CalibrationSection
     robot: RobotSection
     grasp: GraspSection
+    episode: EpisodeSection
     source: str = ""
 
     def camera_placements(self, n_cameras: int) -> tuple[CameraPlacement, ...]:

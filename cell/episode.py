@@ -1,0 +1,199 @@
+"""One simulated grasp episode, end to end, checked physically.
+
+randomise the tape -> park the arm out of view -> render, segment, estimate -> plan ->
+execute with the simulated UR5e -> check that both pads closed on the tape and that the
+tape's tip followed the gripper through the lift. The result is a `tape-episode/1` dict.
+"""
+from __future__ import annotations
+
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from estimator import estimate
+from estimator.capture import Capture, View, load_cameras
+from estimator.errors import TapecellError
+from estimator.metrics import errors
+
+MIN_LIFT_M = 0.020
+"""The gripper must rise at least this far with the tape for a success."""
+FOLLOW_TOLERANCE_M = 0.008
+"""The tape's tip must move with the gripper within this distance through the lift."""
+
+
+@dataclass
+class EpisodeOutcome:
+    """What the physical check found."""
+
+    success: bool = False
+    failure: str | None = None
+    detail: str = ""
+    pad_contacts: dict[str, int] = field(default_factory=dict)
+    lift_m: float = 0.0
+    tip_follow_error_m: float | None = None
+
+
+def with_cameras(capture: Capture, cameras_file: Path) -> Capture:
+    """The capture with its cameras replaced by calibrated ones, matched by name."""
+    calibrated = {c.name: c for c in load_cameras(cameras_file)}
+    views = []
+    for v in capture.views:
+        if v.camera.name not in calibrated:
+            raise TapecellError(f"{cameras_file}: no camera '{v.camera.name}' (has {', '.join(calibrated)})")
+        views.append(View(calibrated[v.camera.name], v.mask, v.ignore, v.image))
+    return Capture(capture.tape, views, capture.truth, capture.path, capture.segmentation)
+
+
+def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
+                config: Path | None = None) -> dict[str, Any]:
+    """Run one episode; returns its `tape-episode/1` dict. Errors the planner or the arm
+    raise become the failure reason; anything else propagates."""
+    from sim.arm import SimArm
+    from sim.cell import SimCell
+    from sim.config import load_cell_config
+
+    from .planner import GraspParams, GripperGeometry, PlanRefused, Speeds, TipFrame, execute_plan, plan_grasp
+    from .safety import SafetyLimits
+    from .sim_arm import SimArmDriver
+
+    cfg = load_cell_config(config)
+    times: dict[str, float] = {}
+    doc: dict[str, Any] = {"format": "tape-episode/1", "seed": int(seed), "cameras": int(cameras),
+                           "success": False, "failure": None, "tip_error_mm": None, "normal_error_deg": None}
+    stream = None
+    if recording is not None:
+        from . import recording as rec
+        stream = rec.open_recording(recording, app_id="tapecell-episode",
+                                    camera_names=[p.name for p in cfg.camera_placements(cameras)])
+    try:
+        t0 = time.perf_counter()
+        cell = SimCell(cfg, seed=seed, n_cameras=cameras, tool="gripper")
+        sim_arm = SimArm(cell, tool="gripper")
+        sim_arm.open_gripper()
+        capture = cell.capture(rgb=stream is not None)
+        if cfg.episode.cameras_file:
+            capture = with_cameras(capture, _resolve(cfg, cfg.episode.cameras_file))
+        times["capture"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        callback = rec.fit_logger(stream, capture) if stream is not None else None
+        est = estimate(capture, callback=callback)
+        times["estimate"] = est.time_s
+        err = errors(est.nodes, est.tip_rotation, capture.truth)
+        doc["tip_error_mm"] = round(err.tip_m * 1e3, 3)
+        doc["normal_error_deg"] = round(err.normal_deg, 3)
+        doc["cost"] = round(float(est.cost), 5)
+        if stream is not None:
+            rec.log_fit_result(stream, capture, est)
+            rec.log_truth(stream, capture.truth)
+
+        t0 = time.perf_counter()
+        limits = SafetyLimits.from_config(cfg.limits)
+        try:
+            plan = plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),
+                              GripperGeometry.from_config(cfg.tools.gripper), limits,
+                              q_start=sim_arm.joints(), tape_points=est.nodes)
+        except PlanRefused as e:
+            times["plan"] = time.perf_counter() - t0
+            doc.update(failure=e.reason, detail=e.detail)
+            return doc
+        times["plan"] = time.perf_counter() - t0
+        if stream is not None:
+            rec.log_plan(stream, plan.tool_waypoints())
+
+        t0 = time.perf_counter()
+        outcome = _execute_and_check(cell, sim_arm, plan, limits, stream)
+        times["execute"] = time.perf_counter() - t0
+        doc.update(success=outcome.success, failure=outcome.failure)
+        doc["pad_contacts"] = outcome.pad_contacts
+        doc["lift_mm"] = round(outcome.lift_m * 1e3, 2)
+        if outcome.tip_follow_error_m is not None:
+            doc["tip_follow_error_mm"] = round(outcome.tip_follow_error_m * 1e3, 2)
+        if outcome.detail:
+            doc["detail"] = outcome.detail
+        cell.close()
+        return doc
+    finally:
+        doc["time_s"] = {k: round(v, 4) for k, v in times.items()}
+        if stream is not None:
+            rec.log_result(stream, {k: v for k, v in doc.items() if not isinstance(v, dict)})
+            rec.close_recording(stream)
+            doc["recording"] = Path(recording).name
+
+
+def _resolve(cfg, path: str) -> Path:
+    p = Path(path)
+    if not p.is_absolute() and cfg.source:
+        p = Path(cfg.source).parent / p
+    return p
+
+
+def _execute_and_check(cell, sim_arm, plan, limits, stream) -> EpisodeOutcome:
+    """Run the plan on the simulated arm and judge the grasp from the physics."""
+    from .planner import Speeds, execute_plan
+    from .sim_arm import SimArmDriver
+    from .arm import ArmError
+    from .safety import SafetyError
+
+    out = EpisodeOutcome()
+    state: dict[str, Any] = {}
+
+    def on_step(step, arm) -> None:
+        if stream is not None:
+            from . import recording as rec
+            rec.log_arm_state(stream, cell.data.time, sim_arm.tcp_pose("flange"), sim_arm.joints())
+            rec.log_gripper(stream, cell.data.time, sim_arm.gripper_opening(), step.action)
+        if step.action == "close_gripper":
+            state["contacts_closed"] = cell.gripper_pad_contacts_with_tape()
+            state["tip_before"] = cell.tape_tip_position()
+            state["tcp_before"] = sim_arm.tcp_pose("gripper")[:3, 3].copy()
+
+    driver = SimArmDriver(sim_arm)
+    try:
+        with driver:
+            execute_plan(plan, driver, limits, Speeds(), on_step=on_step)
+    except (SafetyError, ArmError) as e:
+        out.failure, out.detail = ("limits" if isinstance(e, SafetyError) else "arm error"), str(e)
+        return out
+    closed = state.get("contacts_closed", {})
+    out.pad_contacts = cell.gripper_pad_contacts_with_tape()
+    if not (closed.get("left", 0) and closed.get("right", 0)):
+        out.failure = "missed"
+        out.detail = f"pad contacts with the tape on closing: {closed}"
+        return out
+    gripper_move = sim_arm.tcp_pose("gripper")[:3, 3] - state["tcp_before"]
+    tip_move = cell.tape_tip_position() - state["tip_before"]
+    out.lift_m = float(np.linalg.norm(gripper_move))
+    out.tip_follow_error_m = float(np.linalg.norm(tip_move - gripper_move))
+    if not (out.pad_contacts.get("left", 0) and out.pad_contacts.get("right", 0)) \
+            or out.tip_follow_error_m > FOLLOW_TOLERANCE_M:
+        out.failure = "slipped"
+        out.detail = (f"after the lift: pad contacts {out.pad_contacts}, tip lagged the gripper by "
+                      f"{out.tip_follow_error_m * 1e3:.1f} mm")
+        return out
+    if out.lift_m < MIN_LIFT_M:
+        out.failure = "short lift"
+        out.detail = f"the gripper rose only {out.lift_m * 1e3:.1f} mm"
+        return out
+    out.success = True
+    return out
+
+
+def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Path | None) -> dict[str, Any]:
+    """:func:`run_episode` for batch runs: an unexpected error becomes a failed episode
+    ("error: ...") instead of ending the batch."""
+    try:
+        return run_episode(seed, cameras, recording, config)
+    except TapecellError as e:
+        return _failed(seed, cameras, "error", str(e))
+    except Exception as e:  # a bug must not lose the other episodes; the reason keeps the trace
+        return _failed(seed, cameras, "crash", f"{type(e).__name__}: {e} | {traceback.format_exc(limit=3)}")
+
+
+def _failed(seed: int, cameras: int, reason: str, detail: str) -> dict[str, Any]:
+    return {"format": "tape-episode/1", "seed": int(seed), "cameras": int(cameras), "success": False,
+            "failure": reason, "detail": detail, "tip_error_mm": None, "normal_error_deg": None, "time_s": {}}
