@@ -12,7 +12,7 @@ import sys
 
 from estimator.errors import TapecellError
 
-COMMANDS = ["estimate"]
+COMMANDS = ["estimate", "calibrate", "sim"]
 
 
 def build_parser() -> argparse.ArgumentParser:
