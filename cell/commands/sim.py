@@ -1,0 +1,97 @@
+"""``tapecell sim capture|cameras|snapshot|view``: the simulated cell from the command line."""
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+from estimator.errors import TapecellError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("sim", help="the simulated MuJoCo cell: captures, true cameras, snapshots, viewer")
+    sub = p.add_subparsers(dest="sim_command", metavar="SUBCOMMAND", required=True)
+
+    def common(q: argparse.ArgumentParser, seed: bool = True) -> None:
+        q.add_argument("--config", type=Path, default=None, help="cell file (default: the bundled assets/cell.toml)")
+        q.add_argument("--cameras", type=int, choices=(2, 3), default=2, help="number of cameras (default 2)")
+        if seed:
+            q.add_argument("--seed", type=int, default=0, help="tape shape seed (default 0)")
+
+    q = sub.add_parser("capture", help="write a tape-capture/1 directory with truth.json")
+    common(q)
+    q.add_argument("--rgb", action="store_true", help="also write the rendered colour images")
+    q.add_argument("--out", type=Path, required=True, help="capture directory to write")
+    q.set_defaults(func=run_capture)
+
+    q = sub.add_parser("cameras", help="write the true cameras as tape-cameras/1")
+    common(q, seed=False)
+    q.add_argument("--out", type=Path, required=True, help="cameras JSON file to write")
+    q.set_defaults(func=run_cameras)
+
+    q = sub.add_parser("snapshot", help="save a PNG from every camera and an overview camera")
+    common(q)
+    q.add_argument("--out", type=Path, required=True, help="directory for the PNGs")
+    q.set_defaults(func=run_snapshot)
+
+    q = sub.add_parser("view", help="open MuJoCo's interactive viewer (needs a display)")
+    common(q)
+    q.set_defaults(func=run_view)
+
+
+def _cell(args):
+    from sim.cell import SimCell
+    from sim.config import load_cell_config
+
+    return SimCell(load_cell_config(args.config), getattr(args, "seed", 0), n_cameras=args.cameras)
+
+
+def run_capture(args) -> int:
+    from estimator.capture import save_capture
+
+    with _cell(args) as cell:
+        cap = cell.capture(rgb=args.rgb)
+        save_capture(cap, args.out, rgb=args.rgb)
+        t = cell.timing
+        print(f"wrote {args.out}: seed {cell.seed} ({cell.rest.case}), {len(cap.views)} cameras, "
+              f"tip at {[round(float(v), 4) for v in cap.truth.points[-1]]} m; "
+              f"settle {t.settle_s * 1000:.0f} ms, render {t.render_s * 1000:.0f} ms")
+    return 0
+
+
+def run_cameras(args) -> int:
+    from estimator.capture import save_cameras
+
+    with _cell(args) as cell:
+        save_cameras(cell.cameras(), args.out)
+        print(f"wrote {args.out}: {', '.join(cell.camera_names)}")
+    return 0
+
+
+def run_snapshot(args) -> int:
+    import cv2
+
+    from estimator.io import atomic_write_bytes
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise TapecellError(f"{out}: exists and is not a directory")
+    with _cell(args) as cell:
+        names = cell.camera_names + ["overview"]
+        out.mkdir(parents=True, exist_ok=True)
+        for n in names:
+            _, buf = cv2.imencode(".png", cv2.cvtColor(cell.render_rgb(n), cv2.COLOR_RGB2BGR))
+            atomic_write_bytes(out / f"{n}.png", buf.tobytes())
+        print(f"wrote {', '.join(f'{n}.png' for n in names)} to {out} (seed {cell.seed}, {cell.rest.case})")
+    return 0
+
+
+def run_view(args) -> int:
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        raise TapecellError("no display here (DISPLAY is not set): use 'tapecell sim snapshot --out DIR' to "
+                            "render images instead")
+    import mujoco.viewer
+
+    with _cell(args) as cell:
+        mujoco.viewer.launch(cell.model, cell.data)
+    return 0
