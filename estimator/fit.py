@@ -50,9 +50,11 @@ OUTLINE_POINTS = 48
 """Observed outline points per view in the coverage term."""
 BEAM = 6
 """Partial chains kept per node in the global stage."""
-REFINE = 3
-"""Best full chains refined by Levenberg-Marquardt."""
-LM_ITERATIONS = 12
+REFINE = 2
+"""Candidates refined to convergence after screening."""
+LM_SCREEN = 4
+"""Levenberg-Marquardt iterations every beam candidate gets before screening."""
+LM_ITERATIONS = 10
 ANGLE_PRIOR = 0.05
 """Weight of a weak preference for small joint angles in the global stage."""
 
@@ -93,6 +95,11 @@ class _Field:
     target: ViewTarget
     outline: np.ndarray
 
+    @property
+    def flat(self) -> np.ndarray:
+        """The field as (h*w, 3) rows for fast gathering."""
+        return self.field.reshape(-1, 3)
+
 
 def _clean_mask(mask: np.ndarray) -> np.ndarray:
     """The mask without speckles (small isolated regions); uint8 0/1."""
@@ -116,27 +123,37 @@ def _fill_pinholes(m: np.ndarray) -> np.ndarray:
     return out
 
 
+def _tape_box(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """Bounding box (x0, y0, x1, y1) of the tape, ignoring isolated speckles: found on a
+    4x area-downsampled copy where a lone pixel falls below the threshold."""
+    small = cv2.resize(mask.view(np.uint8) * np.uint8(255), None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
+    x, y, w, h = cv2.boundingRect((small > 96).astype(np.uint8))
+    if w == 0:
+        x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+        return x, y, x + w, y + h
+    return 4 * x, 4 * y, 4 * (x + w), 4 * (y + h)
+
+
 def _prepare(view: View) -> _Field:
     cam = view.camera
-    clean = _clean_mask(view.mask)
-    ys, xs = np.nonzero(clean)
+    bx0, by0, bx1, by1 = _tape_box(view.mask)
     margin = OCCLUDED_MARGIN_PX if view.ignore is not None else MARGIN_PX
-    x0, y0 = max(0, int(xs.min()) - margin), max(0, int(ys.min()) - margin)
-    x1, y1 = min(cam.width, int(xs.max()) + margin + 1), min(cam.height, int(ys.max()) + margin + 1)
-    roi = clean[y0:y1, x0:x1]
-    roi = _fill_pinholes(roi)
+    x0, y0 = max(0, bx0 - margin), max(0, by0 - margin)
+    x1, y1 = min(cam.width, bx1 + margin), min(cam.height, by1 + margin)
+    roi = _fill_pinholes(_clean_mask(view.mask[y0:y1, x0:x1]))
     ignore = None if view.ignore is None else view.ignore[y0:y1, x0:x1]
     # Unknown pixels get the benefit of the doubt: no boundary is drawn through them.
     solid = roi if ignore is None else (roi | ignore).astype(np.uint8)
-    inside = cv2.distanceTransform(solid, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    outside = cv2.distanceTransform(1 - solid, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    inside = cv2.distanceTransform(solid, cv2.DIST_L2, cv2.DIST_MASK_5)
+    outside = cv2.distanceTransform(1 - solid, cv2.DIST_L2, cv2.DIST_MASK_5)
     sdf = np.where(solid > 0, 0.5 - inside, outside - 0.5).astype(np.float32)
     gx = cv2.Sobel(sdf, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
     gy = cv2.Sobel(sdf, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
     field = np.ascontiguousarray(np.dstack([sdf, gx, gy]))
-    full = np.zeros(view.mask.shape, bool)
-    full[y0:y1, x0:x1] = roi > 0
-    target = make_target(view, full, (x0, y0, x1, y1))
+    valid = None if ignore is None else (~ignore).astype(np.uint8)
+    observed = roi if valid is None else roi & valid
+    target = ViewTarget(cam, x0, y0, np.ascontiguousarray(observed), valid,
+                        max(1.0, float(cv2.countNonZero(observed))))
     return _Field(cam, x0, y0, field, ignore, target, _outline(roi, ignore, x0, y0))
 
 
@@ -174,11 +191,12 @@ def _sample(field: _Field, u: np.ndarray, v: np.ndarray, gradient: bool):
     extra = np.abs(x - xc) + np.abs(y - yc)
     xi = xc.astype(np.intp)
     yi = yc.astype(np.intp)
-    fx = (xc - xi)[..., None]
-    fy = (yc - yi)[..., None]
-    f = field.field
-    val = ((f[yi, xi] * (1 - fx) + f[yi, xi + 1] * fx) * (1 - fy)
-           + (f[yi + 1, xi] * (1 - fx) + f[yi + 1, xi + 1] * fx) * fy)
+    fx = (xc - xi)
+    fy = (yc - yi)
+    idx = yi * w + xi
+    corners = np.take(field.flat, np.stack([idx, idx + 1, idx + w, idx + w + 1]), axis=0)
+    wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])[..., None]
+    val = np.sum(corners * wts, axis=0)
     sdf = val[..., 0] + extra
     if field.ignore is not None:
         ignored = field.ignore[np.rint(yc).astype(np.intp), np.rint(xc).astype(np.intp)] & (extra == 0)
@@ -477,10 +495,15 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     best, best_cost = None, np.inf
     history: list[float] = []
     iteration = 0
-    for start in candidates[:REFINE]:
+    # A few iterations on every candidate, then the best by silhouette cost to the end.
+    scored = []
+    for start in candidates:
         trace: list[tuple[np.ndarray, float]] = []
-        angles, _ = _levenberg_marquardt(chain, fields, start, LM_ITERATIONS,
-                                         lambda a, c: trace.append((a, c)))
+        angles, _ = _levenberg_marquardt(chain, fields, start, LM_SCREEN, lambda a, c: trace.append((a, c)))
+        scored.append((evaluator.cost(forward_kinematics(capture.tape, angles).quads()), angles, trace))
+    scored.sort(key=lambda x: x[0])
+    for _, start, trace in scored[:REFINE]:
+        angles, _ = _levenberg_marquardt(chain, fields, start, LM_ITERATIONS, lambda a, c: trace.append((a, c)))
         cost = evaluator.cost(forward_kinematics(capture.tape, angles).quads())
         if cost < best_cost:
             best, best_cost, best_trace = angles, cost, trace
