@@ -167,7 +167,7 @@ def _measure(gray: np.ndarray, blob: np.ndarray, plate_level: float, cross_level
     if signed < 0:
         poly = poly[::-1]
     prev, nxt = np.roll(poly, 1, axis=0), np.roll(poly, -1, axis=0)
-    turn = np.cross(poly - prev, nxt - poly)
+    turn = _cross2(poly - prev, nxt - poly)
     concave = np.flatnonzero(turn < 0)
     if len(concave) != 4 or np.any(np.diff(concave) != 3):
         return _reject("occluded", "the outline is not a cross (concave corners out of place)")
@@ -198,6 +198,11 @@ def _measure(gray: np.ndarray, blob: np.ndarray, plate_level: float, cross_level
     if not np.all(np.isfinite(centre)) or np.linalg.norm(centre - centre0) > bar_px:
         return _reject("occluded", "edge lines do not meet at the cross", oblique_deg=oblique, edge_rms_px=rms)
     return CrossDetection(centre, None, "ok", corners, oblique, rms)
+
+
+def _cross2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """z component of the cross product of 2-D vectors (..., 2)."""
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
 def _line_through(p: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -263,7 +268,7 @@ def _fit_bar_edges(gray, poly, centre0, mid, bar_px):
             outward = np.array([edge[1], -edge[0]])      # right-hand normal of a CCW outline (y down)
             if np.dot(outward, (p + q) / 2 - centre0) - np.dot(direction, (p + q) / 2 - centre0) * np.dot(outward, direction) < 0:
                 outward = -outward
-            side = int(np.sign(np.cross(direction, (p + q) / 2 - centre0)) * (1 if arm < 2 else -1))
+            side = int(np.sign(_cross2(direction, (p + q) / 2 - centre0)) * (1 if arm < 2 else -1))
             groups.setdefault((arm % 2, side), []).append(_edge_points(gray, p, q, outward, mid, half))
     lines, resid = [], []
     for bar in (0, 1):

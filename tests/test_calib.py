@@ -1,0 +1,182 @@
+"""Calibration: DLT + refinement on synthetic points, pose planning, the calibrate command
+on the simulated cell against the true cameras, bad input, and the real-cell path."""
+import dataclasses
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+
+from cell.calibration import (CalibrationError, calibrate_camera, camera_errors, decompose_projection,
+                              dlt_projection, plan_poses, solve_all)
+from cell.cli import main
+from cell.cross import CrossDetection
+from estimator.capture import load_cameras
+from estimator.geometry import Camera, rot_x, rot_z
+from sim.config import load_cell_config
+
+K = np.array([[1371.0, 0, 319.5], [0, 1371.0, 239.5], [0, 0, 1]])
+
+
+def _true_camera(dist=(0, 0, 0, 0, 0)):
+    R = rot_x(np.radians(-95)) @ rot_z(np.radians(70))
+    centre = np.array([0.55, 0.3, 0.2])
+    return Camera("cam0", 640, 480, K, np.array(dist, float), R, -R @ centre)
+
+
+def _grid(n=4):
+    ax = [np.linspace(-0.06, 0.06, n), np.linspace(0.44, 0.56, n), np.linspace(0.12, 0.24, n)]
+    return np.stack(np.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+
+
+def test_dlt_exact_without_noise():
+    cam = _true_camera()
+    X = _grid(3)
+    Kd, R, t = decompose_projection(dlt_projection(X, cam.project(X)))
+    assert np.allclose(Kd, K, atol=1e-4 * 1371)
+    assert np.allclose(R, cam.R, atol=1e-7) and np.allclose(t, cam.t, atol=1e-7)
+
+
+def test_refinement_recovers_distortion_without_noise():
+    cam = _true_camera((-0.08, 0.0, 0, 0, 0))
+    X = _grid(4)
+    fit = calibrate_camera("cam0", (640, 480), X, cam.project(X), "k1")
+    e = camera_errors(fit.camera, cam)
+    assert fit.camera.rms_px < 1e-3
+    assert e["focal_pct"] < 1e-3 and e["principal_px"] < 1e-2 and e["rotation_deg"] < 1e-4
+    assert abs(fit.camera.dist[0] + 0.08) < 1e-4
+
+
+def test_refinement_with_noise_and_outliers():
+    cam = _true_camera()
+    X = _grid(5)
+    rng = np.random.default_rng(0)
+    x = cam.project(X) + rng.normal(0, 0.03, (len(X), 2))
+    x[[5, 40]] += [3.0, -2.0]                   # two mis-detections
+    fit = calibrate_camera("cam0", (640, 480), X, x, "k1k2")
+    assert set(np.flatnonzero(~fit.inliers)) == {5, 40}
+    e = camera_errors(fit.camera, cam)
+    assert 0.02 < fit.camera.rms_px < 0.05
+    assert e["focal_pct"] < 0.2 and e["principal_px"] < 2.0 and e["centre_m"] < 1e-3 and e["rotation_deg"] < 0.1
+    # Without outlier removal the two bad points would drag the residual up.
+    assert np.sqrt(np.mean(fit.residuals_px[fit.inliers] ** 2)) == pytest.approx(fit.camera.rms_px)
+
+
+def test_coplanar_points_are_refused():
+    cam = _true_camera()
+    X = _grid(3)
+    X[:, 0] = 0.0
+    with pytest.raises(CalibrationError):
+        dlt_projection(X, cam.project(X))
+
+
+def test_plan_reaches_the_default_grid_and_faces_the_cameras():
+    cell = load_cell_config()
+    for n in (2, 3):
+        poses = plan_poses(cell, n)
+        assert len(poses) == int(np.prod(cell.calibration.grid_counts))
+        assert all(max(p.view_deg.values()) <= 45.0 for p in poses)
+        normals = np.array([p.world_from_tcp[:3, 2] for p in poses])
+        assert np.ptp(normals, axis=0).max() > 0.2           # orientations vary
+
+
+def test_unreachable_grid_is_an_error():
+    cell = load_cell_config()
+    far = dataclasses.replace(cell.calibration, grid_min=(1.2, 0.4, 0.1), grid_max=(1.3, 0.6, 0.2))
+    with pytest.raises(CalibrationError, match="unreachable"):
+        plan_poses(dataclasses.replace(cell, calibration=far), 2)
+
+
+def _dets(pix, ok):
+    return [CrossDetection(p, None) if good else CrossDetection(None, "missing") for p, good in zip(pix, ok)]
+
+
+def test_too_few_poses_and_large_rms_are_errors():
+    cell = load_cell_config()
+    cam = _true_camera()
+    X = _grid(3)
+    pix = cam.project(X)
+    ok = np.zeros(len(X), bool)
+    ok[:cell.calibration.min_poses - 1] = True
+    with pytest.raises(CalibrationError, match="min_poses"):
+        solve_all(X, {"cam0": _dets(pix, ok)}, {"cam0": (640, 480)}, cell.calibration)
+    noisy = pix + np.random.default_rng(1).normal(0, 0.8, pix.shape)
+    with pytest.raises(CalibrationError, match="max_rms_px"):
+        solve_all(X, {"cam0": _dets(noisy, np.ones(len(X), bool))}, {"cam0": (640, 480)}, cell.calibration)
+
+
+# ------------------------------------------------------------------ the command, simulated
+@pytest.fixture(scope="module")
+def sim_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("calib")
+    out, rrd = d / "cams.json", d / "cal.rrd"
+    rc = main(["calibrate", "--sim", "--seed", "2", "--out", str(out), "--rrd", str(rrd)])
+    return rc, out, rrd
+
+
+def test_calibrate_command_meets_targets_against_true_cameras(sim_run):
+    from sim.cell import SimCell
+
+    rc, out, _ = sim_run
+    assert rc == 0
+    cams = load_cameras(out)
+    with SimCell(load_cell_config(), seed=2, n_cameras=2) as sim:
+        truth = {c.name: c for c in sim.cameras()}
+    assert [c.name for c in cams] == ["cam0", "cam1"]
+    for c in cams:
+        e = camera_errors(c, truth[c.name])
+        assert e["focal_pct"] <= 0.2 and e["principal_px"] <= 1.0
+        assert e["centre_m"] <= 1e-3 and e["rotation_deg"] <= 0.05
+        assert c.rms_px is not None and c.rms_px <= 0.1
+
+
+def test_calibrate_recording_reads_back(sim_run):
+    from cell.recording import read_recording
+
+    _, _, rrd = sim_run
+    rows = read_recording(rrd)
+    assert any(k.startswith("calibration/images/cam0") for k in rows)
+    assert "world/calibration/points" in rows
+    assert any(k.startswith("calibration/residual_px/") for k in rows)
+    assert "world/calibrated/cam1" in rows
+
+
+def test_bad_cell_file_writes_nothing(tmp_path, capsys):
+    src = load_cell_config().source
+    text = open(src).read().replace("grid_min = [-0.08, 0.44, 0.13]", "grid_min = [1.20, 0.44, 0.13]") \
+                           .replace("grid_max = [0.05, 0.56, 0.22]", "grid_max = [1.30, 0.56, 0.22]")
+    bad = tmp_path / "cell.toml"
+    bad.write_text(text)
+    out = tmp_path / "cams.json"
+    assert main(["calibrate", "--config", str(bad), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tapecell: error:") and "unreachable" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+# --------------------------------------------------------------------- the real cell, mocked
+@pytest.fixture
+def fake_rtde(monkeypatch):
+    made = []
+
+    class Control:
+        def __init__(self, *a, **k):
+            made.append(("RTDEControlInterface", a))
+
+    class Receive:
+        def __init__(self, *a, **k):
+            made.append(("RTDEReceiveInterface", a))
+
+    monkeypatch.setitem(sys.modules, "rtde_control", types.SimpleNamespace(RTDEControlInterface=Control))
+    monkeypatch.setitem(sys.modules, "rtde_receive", types.SimpleNamespace(RTDEReceiveInterface=Receive))
+    return made
+
+
+def test_real_calibrate_without_execute_only_plans(tmp_path, capsys, fake_rtde):
+    out = tmp_path / "cams.json"
+    cfg = load_cell_config().source
+    assert main(["calibrate", "--config", cfg, "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "nothing moved" in text and text.count("pose ") >= 36
+    assert fake_rtde == [] and not out.exists()
