@@ -48,7 +48,7 @@ DELTA_IN_PX = 1.5
 """Cauchy scale for edge points inside the silhouette (possibly hidden edges) [px]."""
 OUTLINE_POINTS = 48
 """Observed outline points per view in the coverage term."""
-BEAM = 6
+BEAM = 8
 """Partial chains kept per node in the global stage."""
 REFINE = 2
 """Candidates refined to convergence after screening."""
@@ -67,7 +67,7 @@ def _angle_grid() -> np.ndarray:
     """Candidate joint angles (θx, θy, θz) of the global stage [rad]."""
     tx = np.array([-0.8, -0.4, 0.0, 0.4, 0.8])
     ty = np.linspace(-1.2, 1.2, 9)
-    tz = np.array([-0.15, 0.0, 0.15])
+    tz = np.array([0.0])
     return np.stack(np.meshgrid(tx, ty, tz, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
