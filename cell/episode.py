@@ -56,9 +56,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     from sim.cell import SimCell
     from sim.config import load_cell_config
 
-    from .planner import GraspParams, GripperGeometry, PlanRefused, Speeds, TipFrame, execute_plan, plan_grasp
+    from .planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, plan_grasp
     from .safety import SafetyLimits
-    from .sim_arm import SimArmDriver
 
     cfg = load_cell_config(config)
     times: dict[str, float] = {}
@@ -135,9 +134,9 @@ def _resolve(cfg, path: str) -> Path:
 def _execute_and_check(cell, sim_arm, plan, limits, stream) -> EpisodeOutcome:
     """Run the plan on the simulated arm and judge the grasp from the physics."""
     from .planner import Speeds, execute_plan
-    from .sim_arm import SimArmDriver
     from .arm import ArmError
     from .safety import SafetyError
+    from .sim_arm import SimArmAdapter
 
     out = EpisodeOutcome()
     state: dict[str, Any] = {}
@@ -152,7 +151,7 @@ def _execute_and_check(cell, sim_arm, plan, limits, stream) -> EpisodeOutcome:
             state["tip_before"] = cell.tape_tip_position()
             state["tcp_before"] = sim_arm.tcp_pose("gripper")[:3, 3].copy()
 
-    driver = SimArmDriver(sim_arm)
+    driver = SimArmAdapter(sim_arm)
     try:
         with driver:
             execute_plan(plan, driver, limits, Speeds(), on_step=on_step)
