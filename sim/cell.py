@@ -24,6 +24,22 @@ from .ur5e import JOINT_NAMES
 _CV_FROM_MJ_CAM = np.diag([1.0, -1.0, -1.0])   # MuJoCo camera looks down -z with y up
 
 
+def camera_from_mujoco(model: mujoco.MjModel, data: mujoco.MjData, cam_id: int, width: int, height: int) -> Camera:
+    """MuJoCo camera ``cam_id`` rendered at ``width`` x ``height`` as an OpenCV camera.
+
+    The one place MuJoCo's camera convention is converted (dependencies.md): MuJoCo looks
+    down its -z with y up, so world_from_cv = cam_xmat @ diag(1, -1, -1);
+    f = (H/2) / tan(fovy/2); the principal point is the image centre in pixel-centre
+    coordinates, (W/2 - 0.5, H/2 - 0.5). No lens distortion."""
+    f = 0.5 * height / np.tan(0.5 * np.radians(model.cam_fovy[cam_id]))
+    K = np.array([[f, 0.0, width / 2 - 0.5], [0.0, f, height / 2 - 0.5], [0.0, 0.0, 1.0]])
+    world_from_cv = data.cam_xmat[cam_id].reshape(3, 3) @ _CV_FROM_MJ_CAM
+    R = world_from_cv.T
+    t = -R @ data.cam_xpos[cam_id]
+    name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_CAMERA, cam_id) or f"camera{cam_id}"
+    return Camera(name, width, height, K, np.zeros(5), R, t)
+
+
 class SimError(SimConfigError):
     """The simulation went wrong (unstable, warnings, unknown camera or tool)."""
 
@@ -235,12 +251,7 @@ class SimCell:
         h, w = self._renderer.height, self._renderer.width
         if name == "overview":
             h, w = self.config.overview.height, self.config.overview.width
-        f = 0.5 * h / np.tan(0.5 * np.radians(m.cam_fovy[cid]))
-        K = np.array([[f, 0.0, w / 2 - 0.5], [0.0, f, h / 2 - 0.5], [0.0, 0.0, 1.0]])
-        world_from_cv = d.cam_xmat[cid].reshape(3, 3) @ _CV_FROM_MJ_CAM
-        R = world_from_cv.T
-        t = -R @ d.cam_xpos[cid]
-        return Camera(name, w, h, K, np.zeros(5), R, t)
+        return camera_from_mujoco(m, d, cid, w, h)
 
     def _camera_id(self, name: str) -> int:
         cid = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_CAMERA, name)
