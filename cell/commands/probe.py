@@ -1,0 +1,114 @@
+"""``tapecell probe``: measure the true tape with the needle on the arm (paper sec. 4.1).
+
+    tapecell probe --sim [--seed N] [--cameras 2|3] [--out FILE]
+    tapecell probe --config CELL.toml --capture DIR [--out FILE] [--execute]
+
+Simulated: the cell captures and estimates the tape, then the needle approaches the
+tape's tip and tip corners slowly along the tape normal until MuJoCo reports contact;
+the measured points are compared with the estimate (the paper's e, eq. 12) and with the
+simulator's truth. Real: the arm goes into freedrive (teach mode); the operator guides
+the needle onto the tip (and corners) and presses Enter for each; the needle tip is saved
+as a tape-truth/1 fragment next to the capture. Teach mode always ends. Without
+``--execute`` nothing is connected.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from estimator.io import atomic_write_json
+
+from ..probe import (PROBE_LABELS, ProbeError, ProbeParams, SimProber, approach_normal, estimate_errors,
+                     guided_probe, tape_points, truth_fragment)
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("probe", help="measure the tape's tip with the needle",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    where = p.add_mutually_exclusive_group(required=True)
+    where.add_argument("--sim", action="store_true", help="probe the simulated tape")
+    where.add_argument("--config", type=Path, metavar="CELL.toml", help="the real cell's file")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--cameras", type=int, choices=(2, 3), default=2)
+    p.add_argument("--capture", type=Path, metavar="DIR", help="real cell: the capture being probed")
+    p.add_argument("--out", type=Path, help="where to write the tape-truth/1 fragment "
+                                            "(real cell default: CAPTURE/probe.json)")
+    p.add_argument("--execute", action="store_true", help="real cell: connect and start freedrive")
+    p.set_defaults(func=run)
+
+
+def probe_sim(cell, seed: int, n_cameras: int, log=print) -> dict:
+    """Capture, estimate, probe; returns a dict with measured points and the errors [m]."""
+    from estimator import estimate
+    from sim.arm import SimArm
+    from sim.cell import SimCell
+
+    with SimCell(cell, seed=seed, n_cameras=n_cameras, tool="needle") as sim:
+        capture = sim.capture()
+        est = estimate(capture)
+        truth_tip = sim.tape_tip_frame()
+        width = cell.tape.width
+        params = ProbeParams()
+        targets = tape_points(truth_tip[:3, 3], truth_tip[:3, :3], width, params.inset)
+        est_points = tape_points(est.tip_position, est.tip_rotation, width, params.inset)
+        arm = SimArm(sim, tool="needle")
+        prober = SimProber(sim, arm, params)
+        # Approach from the robot's side of the tape (the base is at the origin).
+        normal = approach_normal(truth_tip[:3, 3], truth_tip[:3, 2], -truth_tip[:3, 3])
+        points = []
+        for label in PROBE_LABELS:
+            try:
+                points.append(prober.probe(label, targets[label], normal))
+            except Exception as e:    # noqa: BLE001 - one unreachable point must not lose the others
+                if isinstance(e, ProbeError) or e.__class__.__name__ in ("IKError", "SimArmError"):
+                    log(f"{label}: not probed ({e})")
+                    continue
+                raise
+        if not points:
+            raise ProbeError(f"seed {seed}: no point of the tape could be probed")
+        e_est = estimate_errors(points, est_points)
+        e_truth = {p.label: float(np.linalg.norm(p.position - targets[p.label])) for p in points}
+    for p in points:
+        log(f"{p.label:>9}: measured {np.round(1000 * p.position, 2).tolist()} mm, "
+            f"e (estimate vs measured, eq. 12) {1000 * e_est[p.label]:.2f} mm, "
+            f"measured vs sim truth {1000 * e_truth[p.label]:.3f} mm")
+    tip_truth_err = float(np.linalg.norm(est.tip_position - truth_tip[:3, 3]))
+    log(f"estimate tip vs sim truth: {1000 * tip_truth_err:.2f} mm (cost {est.cost:.4f})")
+    return {"points": points, "e_estimate": e_est, "e_truth": e_truth, "estimate_tip_error": tip_truth_err}
+
+
+def probe_real(cell, args, prompt=input, log=print) -> int:
+    from ..safety import SafetyLimits
+    from ..ur import URArm
+
+    if args.capture is None:
+        raise ProbeError("--capture DIR is needed on the real cell (the capture the probed points belong to)")
+    if not args.capture.is_dir():
+        raise ProbeError(f"{args.capture}: capture directory not found")
+    out = args.out or args.capture / "probe.json"
+    if not args.execute:
+        log(f"would connect to {cell.robot.host}:{cell.robot.port}, start freedrive and record "
+            f"{', '.join(PROBE_LABELS)} into {out}; nothing connected (add --execute)")
+        return 0
+    arm = URArm(cell.robot.host, cell.robot.port, SafetyLimits.from_config(cell.limits),
+                flange_from_tool=cell.tools.needle.flange_from_tcp)
+    with arm:
+        points = guided_probe(arm, cell.tools.needle.flange_from_tcp, PROBE_LABELS, prompt, log)
+    atomic_write_json(out, truth_fragment(points, str(args.capture)))
+    log(f"wrote {out} ({len(points)} points)")
+    return 0
+
+
+def run(args) -> int:
+    from sim.config import load_cell_config
+
+    cell = load_cell_config(None if args.sim else args.config)
+    if not args.sim:
+        return probe_real(cell, args)
+    result = probe_sim(cell, args.seed, args.cameras)
+    if args.out is not None:
+        atomic_write_json(args.out, truth_fragment(result["points"]))
+        print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,191 @@
+"""Measuring the true tape with the needle on the arm (the paper's sec. 4.1, Fig. 6).
+
+Simulated cell: the needle approaches each target point slowly along the tape's normal
+until MuJoCo reports contact between needle and tape (``mj_geomDistance`` <= 0); the
+needle tip then is the measured point (flange pose the arm reports composed with the
+needle offset). Real cell: the arm is put in freedrive (teach mode), the operator guides
+the needle onto the tape, and Enter records the TCP; teach mode ends in every case.
+
+The error of an estimate at a measured point is the paper's ``e`` (eq. 12): the
+Euclidean distance between estimated and measured positions.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from estimator.errors import TapecellError
+
+from .poses import matrix_to_pose6, pose6_to_matrix
+
+PROBE_LABELS = ("tip", "tip_left", "tip_right")
+
+
+class ProbeError(TapecellError):
+    """A point could not be probed (no contact, unreachable, nothing recorded)."""
+
+
+@dataclass(frozen=True)
+class ProbeParams:
+    """inset: target points lie this far inside the tape's end and edges, so the needle
+    lands on the tape, not beside it [m]. standoff: approach starts this far from the
+    surface along the normal [m]. coarse_step, fine_step: approach increments far from and
+    near the surface [m]. speed: approach speed [m/s]."""
+
+    inset: float = 0.002
+    standoff: float = 0.02
+    coarse_step: float = 0.002
+    fine_step: float = 0.0001
+    speed: float = 0.01
+
+
+@dataclass(frozen=True, eq=False)
+class ProbedPoint:
+    """label: which point; position: (3,) measured needle tip [m]; target: (3,) where it
+    was sent [m] (None when guided by hand)."""
+
+    label: str
+    position: np.ndarray
+    target: np.ndarray | None = None
+
+
+def tape_points(tip_position: np.ndarray, tip_rotation: np.ndarray, width: float, inset: float) -> dict[str, np.ndarray]:
+    """The probe points of a tape end: tip (on the centre line) and the two tip corners,
+    each ``inset`` inside the tape [m]. Columns of ``tip_rotation``: trunk, left, normal."""
+    trunk, left = tip_rotation[:, 0], tip_rotation[:, 1]
+    back = tip_position - inset * trunk
+    return {"tip": back, "tip_left": back + (width / 2 - inset) * left,
+            "tip_right": back - (width / 2 - inset) * left}
+
+
+def needle_world_from_tcp(point: np.ndarray, approach: np.ndarray) -> np.ndarray:
+    """4x4 needle TCP frame at ``point`` with the needle axis (TCP z) along ``approach``."""
+    z = approach / np.linalg.norm(approach)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    T[:3, 3] = point
+    return T
+
+
+class SimProber:
+    """Probes the simulated tape with the needle on a :class:`sim.arm.SimArm`."""
+
+    def __init__(self, sim_cell, sim_arm, params: ProbeParams = ProbeParams()) -> None:
+        import mujoco
+
+        self.sim, self.arm, self.params = sim_cell, sim_arm, params
+        m = sim_cell.model
+        self._needle = m.geom("needle").id
+        self._tape = [m.geom(f"tape_{i}").id for i in range(sim_cell.config.tape.plates)]
+        self._fromto = np.zeros(6)
+        self._mujoco = mujoco
+
+    def gap(self) -> float:
+        """Smallest distance between the needle and any tape plate [m] (<= 0: contact)."""
+        m, d = self.sim.model, self.sim.data
+        best = np.inf
+        for g in self._tape:
+            best = min(best, self._mujoco.mj_geomDistance(m, d, self._needle, g, 0.05, self._fromto))
+        return float(best)
+
+    def _go_to_standoff(self, label: str, point: np.ndarray, approach: np.ndarray) -> np.ndarray:
+        """Joint move (closed-form IK, any roll of the needle about its axis) to the needle
+        frame at ``point`` pointing along ``approach``; returns that frame (4x4)."""
+        from .kinematics import ik_nearest
+
+        flange_from_needle = self.sim.config.tools.flange_from_tcp("needle")
+        base = needle_world_from_tcp(point, approach)
+        for roll in np.radians(np.arange(0.0, 360.0, 30.0)):
+            c, s_ = np.cos(roll), np.sin(roll)
+            R = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
+            T = base @ R
+            q = ik_nearest(T @ np.linalg.inv(flange_from_needle), self.arm.joints())
+            if q is not None:
+                self.arm.move_joints(q)
+                return T
+        raise ProbeError(f"{label}: the needle cannot reach {np.round(point, 4).tolist()} along "
+                         f"{np.round(approach, 3).tolist()}")
+
+    def probe(self, label: str, target: np.ndarray, normal: np.ndarray) -> ProbedPoint:
+        """Approach ``target`` along -``normal`` (from the side ``normal`` points to) until
+        the needle touches the tape; the needle tip at contact is the measurement."""
+        p = self.params
+        approach = -normal / np.linalg.norm(normal)
+        start = self._go_to_standoff(label, target - p.standoff * approach, approach)
+        travelled = 0.0
+        while True:
+            gap = self.gap()
+            if gap <= 0.0:
+                break
+            if travelled > 2 * p.standoff:
+                raise ProbeError(f"{label}: no contact with the tape within {2000 * p.standoff:.0f} mm "
+                                 f"of {np.round(target, 4).tolist()}")
+            step = p.coarse_step if gap > 2 * p.coarse_step else min(p.fine_step, max(gap, 1e-5))
+            travelled += step
+            T = start.copy()
+            T[:3, 3] = start[:3, 3] + travelled * approach
+            self.arm.move_tcp(T, speed=p.speed, tool="needle", settle_s=0.3)
+        measured = self.arm.tcp_pose("needle")[:3, 3]
+        # Back off before the next point so the needle never drags along the tape.
+        self.arm.move_tcp(start, speed=0.05, tool="needle")
+        return ProbedPoint(label, measured.copy(), np.asarray(target, float))
+
+
+def approach_normal(point: np.ndarray, normal: np.ndarray, robot_side: np.ndarray) -> np.ndarray:
+    """The tape normal's sign that faces ``robot_side`` (a direction towards the robot)."""
+    return normal if normal @ robot_side >= 0 else -normal
+
+
+# ----------------------------------------------------------------------------- real cell
+def guided_probe(arm, flange_from_needle: Any, labels: Sequence[str], prompt: Callable[[str], str] = input,
+                 log: Callable[[str], None] = print) -> list[ProbedPoint]:
+    """Freedrive probing on a connected :class:`cell.arm.Arm`.
+
+    Starts teach mode, then for each label waits for Enter (the operator has put the needle
+    on the point) and records the needle tip = reported flange pose composed with
+    ``flange_from_needle``. Typing ``s`` skips a point, ``q`` stops. Teach mode is ended
+    in a ``finally``: on Ctrl-C, an error, or normal return.
+    """
+    F = pose6_to_matrix(flange_from_needle) if np.shape(flange_from_needle) == (6,) else np.asarray(flange_from_needle)
+    points = []
+    arm.freedrive(True)
+    try:
+        for label in labels:
+            answer = prompt(f"guide the needle onto the tape's {label}, then press Enter "
+                            "(s = skip, q = stop): ").strip().lower()
+            if answer == "q":
+                break
+            if answer == "s":
+                continue
+            world_from_needle = pose6_to_matrix(arm.tcp_pose()) @ F
+            points.append(ProbedPoint(label, world_from_needle[:3, 3].copy()))
+            log(f"{label}: {np.round(1000 * world_from_needle[:3, 3], 2).tolist()} mm")
+    finally:
+        arm.freedrive(False)
+    if not points:
+        raise ProbeError("no point was recorded")
+    return points
+
+
+def truth_fragment(points: Sequence[ProbedPoint], capture: str | None = None) -> dict[str, Any]:
+    """A ``tape-truth/1`` fragment: probed points with labels (no full centre line), for
+    the capture at ``capture``."""
+    doc: dict[str, Any] = {"format": "tape-truth/1", "fragment": True, "units": "m",
+                           "probed": [{"label": p.label, "position": np.asarray(p.position).tolist()}
+                                      for p in points]}
+    if capture is not None:
+        doc["capture"] = str(capture)
+    tip = [p for p in points if p.label == "tip"]
+    if tip:
+        doc["tip"] = {"position": np.asarray(tip[0].position).tolist()}
+    return doc
+
+
+def estimate_errors(points: Sequence[ProbedPoint], estimated: dict[str, np.ndarray]) -> dict[str, float]:
+    """The paper's e (eq. 12) per probed label: |estimated - measured| [m]."""
+    return {p.label: float(np.linalg.norm(estimated[p.label] - p.position)) for p in points if p.label in estimated}
