@@ -12,7 +12,7 @@ import sys
 
 from estimator.errors import TapecellError
 
-COMMANDS = ["estimate", "calibrate", "sim", "episode", "run"]
+COMMANDS = ["estimate", "calibrate", "sim", "episode", "run", "probe"]
 
 
 def build_parser() -> argparse.ArgumentParser:
