@@ -142,7 +142,7 @@ def approach_normal(point: np.ndarray, normal: np.ndarray, robot_side: np.ndarra
 
 
 # ----------------------------------------------------------------------------- real cell
-def guided_probe(arm, flange_from_needle: Any, labels: Sequence[str], prompt: Callable[[str], str] = input,
+def guided_probe(arm, flange_from_needle: Any, labels: Sequence[str], prompt: Callable[[str], str] | None = None,
                  log: Callable[[str], None] = print) -> list[ProbedPoint]:
     """Freedrive probing on a connected :class:`cell.arm.Arm`.
 
@@ -152,6 +152,7 @@ def guided_probe(arm, flange_from_needle: Any, labels: Sequence[str], prompt: Ca
     in a ``finally``: on Ctrl-C, an error, or normal return.
     """
     F = pose6_to_matrix(flange_from_needle) if np.shape(flange_from_needle) == (6,) else np.asarray(flange_from_needle)
+    prompt = prompt or (lambda text: input(text))
     points = []
     arm.freedrive(True)
     try:

@@ -79,7 +79,7 @@ def probe_sim(cell, seed: int, n_cameras: int, log=print) -> dict:
     return {"points": points, "e_estimate": e_est, "e_truth": e_truth, "estimate_tip_error": tip_truth_err}
 
 
-def probe_real(cell, args, prompt=input, log=print) -> int:
+def probe_real(cell, args, prompt=None, log=print) -> int:
     from ..safety import SafetyLimits
     from ..ur import URArm
 

@@ -1,0 +1,162 @@
+"""Probing: needle contact in simulation, and the real cell's freedrive path with ur_rtde faked."""
+import json
+import sys
+import types
+
+import numpy as np
+import pytest
+
+from cell.cli import main
+from cell.kinematics import fk
+from cell.poses import matrix_to_pose6, pose6_to_matrix
+from cell.probe import PROBE_LABELS, ProbeError, guided_probe
+from sim.config import load_cell_config
+
+
+def test_probe_sim_measures_the_true_tip():
+    from cell.commands.probe import probe_sim
+
+    lines = []
+    result = probe_sim(load_cell_config(), seed=1, n_cameras=2, log=lines.append)
+    assert [p.label for p in result["points"]] == list(PROBE_LABELS)
+    # The needle stops on the tape's surface: within half the thickness (+ a fine step).
+    assert max(result["e_truth"].values()) < 0.2e-3
+    # e (eq. 12) of a reasonable estimate is millimetres at most, and not zero.
+    assert all(0 < v < 0.01 for v in result["e_estimate"].values())
+    assert any("eq. 12" in l for l in lines)
+
+
+# ------------------------------------------------------------------ real cell, ur_rtde faked
+Q = np.array([1.2, -1.7, 1.9, -1.6, -1.5708, 0.3])
+
+
+@pytest.fixture
+def rtde_log(monkeypatch):
+    log = []
+
+    def record(name, result=True):
+        def method(self, *args):
+            log.append((name, *args))
+            return result
+        return method
+
+    class Control:
+        def __init__(self, host):
+            log.append(("RTDEControlInterface", host))
+        setTcp = record("setTcp")
+        teachMode = record("teachMode")
+        endTeachMode = record("endTeachMode")
+        stopJ = record("stopJ")
+        stopL = record("stopL")
+        servoStop = record("servoStop")
+        speedStop = record("speedStop")
+        disconnect = record("control.disconnect")
+
+        def isConnected(self):
+            return True
+
+        def moveL(self, *a):
+            log.append(("moveL", *a))
+            return True
+
+        def moveJ(self, *a):
+            log.append(("moveJ", *a))
+            return True
+
+    class Receive:
+        def __init__(self, host):
+            log.append(("RTDEReceiveInterface", host))
+
+        def isConnected(self):
+            return True
+
+        def getActualTCPPose(self):
+            log.append(("getActualTCPPose",))
+            return matrix_to_pose6(fk(Q)).tolist()
+
+        def getActualQ(self):
+            return Q.tolist()
+
+        def isProtectiveStopped(self):
+            return False
+
+        disconnect = record("receive.disconnect")
+
+    class IO:
+        def __init__(self, host):
+            log.append(("RTDEIOInterface", host))
+        disconnect = record("io.disconnect")
+
+    for name, attr, cls in (("rtde_control", "RTDEControlInterface", Control),
+                            ("rtde_receive", "RTDEReceiveInterface", Receive),
+                            ("rtde_io", "RTDEIOInterface", IO)):
+        mod = types.ModuleType(name)
+        setattr(mod, attr, cls)
+        monkeypatch.setitem(sys.modules, name, mod)
+    import cell.ur
+    monkeypatch.setattr(cell.ur, "probe_rtde", lambda *a, **k: None)   # no socket to a real controller
+    return log
+
+
+@pytest.fixture
+def capture_dir(tmp_path):
+    d = tmp_path / "cap"
+    d.mkdir()
+    return d
+
+
+def _run_real(monkeypatch, capture_dir, answers, execute=True):
+    it = iter(answers)
+
+    def fake_input(prompt=""):
+        a = next(it)
+        if isinstance(a, BaseException):
+            raise a
+        return a
+
+    monkeypatch.setattr("builtins.input", fake_input)
+    argv = ["probe", "--config", load_cell_config().source, "--capture", str(capture_dir)]
+    return main(argv + (["--execute"] if execute else []))
+
+
+def test_real_probe_records_needle_tip_in_freedrive(monkeypatch, rtde_log, capture_dir):
+    assert _run_real(monkeypatch, capture_dir, ["", "", "s"]) == 0
+    names = [c[0] for c in rtde_log]
+    assert names.index("teachMode") < names.index("getActualTCPPose") < names.index("endTeachMode")
+    assert names.count("teachMode") == 1 and names.count("endTeachMode") == 1
+    assert not {"moveL", "moveJ"} & set(names)                       # freedrive only, no motion
+    doc = json.loads((capture_dir / "probe.json").read_text())
+    assert doc["format"] == "tape-truth/1" and [p["label"] for p in doc["probed"]] == ["tip", "tip_left"]
+    needle = pose6_to_matrix(load_cell_config().tools.needle.flange_from_tcp)
+    expected = (fk(Q) @ needle)[:3, 3]
+    assert np.allclose(doc["tip"]["position"], expected, atol=1e-9)
+
+
+@pytest.mark.parametrize("failure", [KeyboardInterrupt(), RuntimeError("camera cable pulled")])
+def test_real_probe_ends_teach_mode_on_interrupt_and_error(monkeypatch, rtde_log, capture_dir, failure):
+    if isinstance(failure, KeyboardInterrupt):
+        assert _run_real(monkeypatch, capture_dir, ["", failure]) == 130
+    else:
+        with pytest.raises(RuntimeError):
+            _run_real(monkeypatch, capture_dir, ["", failure])
+    names = [c[0] for c in rtde_log]
+    assert names.count("teachMode") == 1 and names.count("endTeachMode") == 1
+    assert names.index("endTeachMode") > names.index("teachMode")
+    assert not (capture_dir / "probe.json").exists()
+
+
+def test_real_probe_without_execute_connects_nothing(monkeypatch, rtde_log, capture_dir, capsys):
+    assert _run_real(monkeypatch, capture_dir, [], execute=False) == 0
+    assert rtde_log == [] and "nothing connected" in capsys.readouterr().out
+    assert not (capture_dir / "probe.json").exists()
+
+
+def test_guided_probe_with_nothing_recorded_is_an_error():
+    from cell.fake_arm import FakeArm
+
+    arm = FakeArm()
+    with arm:
+        with pytest.raises(ProbeError):
+            guided_probe(arm, [0, 0, 0.12, 0, 0, 0], PROBE_LABELS, prompt=lambda _: "q", log=lambda _: None)
+        assert arm.freedrive_on is False
+    assert [c for c in arm.calls if c[0] == "freedrive"] == [("freedrive", (True,)), ("freedrive", (False,))]
