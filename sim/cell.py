@@ -172,6 +172,7 @@ class SimCell:
             ke_prev = ke
             if i >= 20 and i % 10 == 0 and np.abs(v).max() < v_stop:
                 break
+        mujoco.mj_kinematics(m, d)
         self.check_warnings()
         return i
 
@@ -180,6 +181,8 @@ class SimCell:
         m, d = self.model, self.data
         for _ in range(n):
             mujoco.mj_step(m, d)
+        # mj_step leaves positions of the previous step in xpos/xmat; bring them up to date.
+        mujoco.mj_kinematics(m, d)
         self.check_warnings()
 
     def check_warnings(self) -> None:
