@@ -64,6 +64,18 @@ def append_result(path: Path, doc: dict[str, Any]) -> None:
         os.close(fd)
 
 
+def _end_torn_line(path: Path) -> None:
+    """After a crash mid-write the file may end inside a line: end it, so the next result
+    starts on a line of its own (the torn line is skipped when read)."""
+    if path.exists() and path.stat().st_size > 0:
+        with open(path, "rb") as f:
+            f.seek(-1, os.SEEK_END)
+            last = f.read(1)
+        if last != b"\n":
+            with open(path, "ab") as f:
+                f.write(b"\n")
+
+
 def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float, float]:
     """95 % Wilson score interval of a success rate."""
     if n == 0:
@@ -153,6 +165,7 @@ def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, r
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / RESULTS
     seeds = list(seeds)
+    _end_torn_line(results_path)
     done = {(r["seed"], r.get("cameras")): r for r in load_results(results_path)}
     todo = [s for s in seeds if (s, cameras) not in done]
     if len(todo) < len(seeds):

@@ -1,0 +1,114 @@
+"""Sim episodes end to end: one physical grasp with its recording, the batch runner
+(parallel, resumable, summary) and refusals."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from cell.cli import main
+from cell.episodes import EpisodeJob, append_result, load_results, run_episodes, summarize, wilson_interval
+from cell.recording import read_recording
+from sim.config import default_cell_path
+
+
+def test_one_episode_grasps_the_tape_and_records_every_step(tmp_path, capsys):
+    rrd = tmp_path / "ep.rrd"
+    code = main(["episode", "--seed", "1", "--rrd", str(rrd)])
+    out, err = capsys.readouterr()
+    doc = json.loads(out)
+    assert code == 0, err
+    assert doc["format"] == "tape-episode/1" and doc["seed"] == 1 and doc["cameras"] == 2
+    assert doc["success"] is True and doc["failure"] is None
+    assert doc["tip_error_mm"] < 3.0
+    assert doc["pad_contacts"]["left"] > 0 and doc["pad_contacts"]["right"] > 0
+    assert doc["lift_mm"] >= 20.0
+    assert set(doc["time_s"]) == {"capture", "estimate", "plan", "execute"}
+    assert doc["recording"] == "ep.rrd"
+    rows = read_recording(rrd)
+    for entity in ("world/cameras/cam0/image/mask", "world/cameras/cam1/image/model",
+                   "world/cameras/cam0/image/rgb", "estimator/cost", "world/tape/estimate",
+                   "world/tape/truth", "world/arm/flange", "arm/joints", "world/plan/waypoints",
+                   "gripper/opening", "grasp/result"):
+        assert entity in rows, entity
+    assert len(rows["estimator/cost"]) >= 2
+    labels = [r for r in rows["world/plan/waypoints"] if "Points3D:labels" in r][-1]["Points3D:labels"]
+    assert "grasp" in labels
+    assert len(rows["world/arm/flange"]) >= 5  # one pose per plan step
+
+
+def test_refused_estimate_is_a_failure_reason(tmp_path, capsys):
+    text = default_cell_path().read_text().replace("cost_threshold = 0.15", "cost_threshold = 0.0")
+    assert "cost_threshold = 0.0" in text
+    cfg = tmp_path / "strict.toml"
+    cfg.write_text(text)
+    code = main(["episode", "--seed", "2", "--config", str(cfg)])
+    out, err = capsys.readouterr()
+    doc = json.loads(out)
+    assert code == 1
+    assert doc["success"] is False and doc["failure"] == "estimate rejected"
+    assert "execute" not in doc["time_s"]
+    assert "estimate rejected" in err
+
+
+def test_bad_cell_file_is_one_line(tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(default_cell_path().read_text() + "\n[episode_typo]\nx = 1\n")
+    code = main(["episode", "--seed", "1", "--config", str(cfg)])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and "episode_typo" in err and str(cfg) in err
+
+
+def test_episodes_in_parallel_then_resume(tmp_path, capsys):
+    out_dir = tmp_path / "runs"
+    code = main(["episodes", "--n", "2", "--seed", "1", "--jobs", "2", "--out", str(out_dir)])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    results = load_results(out_dir / "results.jsonl")
+    assert sorted(r["seed"] for r in results) == [1, 2]
+    assert "episodes 2" in out and "95 % interval" in out
+    code = main(["episodes", "--n", "2", "--seed", "1", "--jobs", "2", "--out", str(out_dir)])
+    out, err = capsys.readouterr()
+    assert "2 of 2 episodes already" in err
+    assert len(load_results(out_dir / "results.jsonl")) == 2
+
+
+def _fake_worker(job: EpisodeJob) -> dict:
+    ok = job.seed % 3 != 0
+    return {"format": "tape-episode/1", "seed": job.seed, "cameras": job.cameras, "success": ok,
+            "failure": None if ok else "missed", "tip_error_mm": 0.1 * job.seed, "normal_error_deg": 1.0,
+            "time_s": {"capture": 0.3, "estimate": 0.01}}
+
+
+def test_runner_skips_done_seeds_and_survives_a_torn_line(tmp_path, capsys):
+    calls = []
+
+    def worker(job):
+        calls.append(job.seed)
+        return _fake_worker(job)
+
+    out_dir = tmp_path / "r"
+    run_episodes(range(0, 3), 2, out_dir, worker=worker)
+    with open(out_dir / "results.jsonl", "a") as f:
+        f.write('{"format": "tape-episode/1", "seed": 3, "cam')  # a crash mid-line
+    results = run_episodes(range(0, 6), 2, out_dir, worker=worker)
+    assert calls == [0, 1, 2, 3, 4, 5][:3] + [3, 4, 5]
+    assert [r["seed"] for r in results] == [0, 1, 2, 3, 4, 5]
+    text = summarize(results)
+    assert "success 4/6" in text and "missed x2" in text
+    assert "tip error mm:     median 0.25" in text
+
+
+def test_results_file_lines_are_whole_json(tmp_path):
+    path = tmp_path / "results.jsonl"
+    for s in range(3):
+        append_result(path, _fake_worker(EpisodeJob(s, 3, None, None)))
+    assert [json.loads(line)["seed"] for line in path.read_text().splitlines()] == [0, 1, 2]
+
+
+@pytest.mark.parametrize("k,n,lo,hi", [(0, 10, 0.0, 0.278), (10, 10, 0.722, 1.0), (196, 200, 0.9497, 0.9922)])
+def test_wilson_interval(k, n, lo, hi):
+    a, b = wilson_interval(k, n)
+    assert a == pytest.approx(lo, abs=2e-3) and b == pytest.approx(hi, abs=2e-3)
