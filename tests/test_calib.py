@@ -180,3 +180,103 @@ def test_real_calibrate_without_execute_only_plans(tmp_path, capsys, fake_rtde):
     text = capsys.readouterr().out
     assert "nothing moved" in text and text.count("pose ") >= 36
     assert fake_rtde == [] and not out.exists()
+
+
+@pytest.fixture
+def fake_ur(monkeypatch):
+    """Fake ur_rtde modules: a controller that goes where moveJ sends it, logging every call."""
+    from cell.kinematics import fk
+    from cell.poses import matrix_to_pose6
+
+    state = {"q": np.array(load_cell_config().arm.home_joints, float), "log": []}
+    log = state["log"]
+
+    def record(name):
+        def method(self, *args):
+            log.append((name, *args))
+            return True
+        return method
+
+    class Control:
+        def __init__(self, host):
+            log.append(("RTDEControlInterface", host))
+        setTcp = record("setTcp")
+        servoStop = record("servoStop")
+        speedStop = record("speedStop")
+        stopJ = record("stopJ")
+        stopL = record("stopL")
+        isJointsWithinSafetyLimits = record("isJointsWithinSafetyLimits")
+        disconnect = record("control.disconnect")
+
+        def isConnected(self):
+            return True
+
+        def moveJ(self, q, speed, acceleration):
+            log.append(("moveJ", list(q), speed, acceleration))
+            state["q"] = np.array(q)
+            return True
+
+    class Receive:
+        def __init__(self, host):
+            log.append(("RTDEReceiveInterface", host))
+
+        def isConnected(self):
+            return True
+
+        def getActualTCPPose(self):
+            return matrix_to_pose6(fk(state["q"])).tolist()
+
+        def getActualQ(self):
+            return state["q"].tolist()
+
+        def isProtectiveStopped(self):
+            return False
+        disconnect = record("receive.disconnect")
+
+    class IO:
+        def __init__(self, host):
+            log.append(("RTDEIOInterface", host))
+        disconnect = record("io.disconnect")
+
+    for name, attr, cls in (("rtde_control", "RTDEControlInterface", Control),
+                            ("rtde_receive", "RTDEReceiveInterface", Receive),
+                            ("rtde_io", "RTDEIOInterface", IO)):
+        mod = types.ModuleType(name)
+        setattr(mod, attr, cls)
+        monkeypatch.setitem(sys.modules, name, mod)
+    import cell.ur
+    monkeypatch.setattr(cell.ur, "probe_rtde", lambda *a, **k: None)
+    return state
+
+
+def test_real_calibrate_execute_moves_exactly_the_plan(tmp_path, fake_ur):
+    """--execute with a faked controller and the pose images from a folder (rendered here
+    at the planned poses, as a real camera would have taken them)."""
+    import cv2
+    from sim.cell import SimCell
+    from cell.commands.calibrate import SimCameras, SimJointArm
+
+    cell = load_cell_config()
+    n_cams = min(len(cell.robot.camera_devices), len(cell.cameras.camera))
+    poses = plan_poses(cell, n_cams)
+    images = tmp_path / "images"
+    with SimCell(cell, seed=0, n_cameras=n_cams, tool="plate") as sim:
+        src, arm = SimCameras(sim), SimJointArm(sim)
+        arm.connect()
+        for p in poses:
+            arm.move_joints(p.joints, 0.5, 1.0)
+            for name, img in src.grab(p.index).items():
+                (images / f"{p.index:03d}").mkdir(parents=True, exist_ok=True)
+                cv2.imwrite(str(images / f"{p.index:03d}" / f"{name}.png"), img[..., ::-1])
+        truth = {c.name: c for c in sim.cameras()}
+    out = tmp_path / "cams.json"
+    rc = main(["calibrate", "--config", cell.source, "--out", str(out), "--execute", "--images", str(images)])
+    assert rc == 0
+    moves = [c for c in fake_ur["log"] if c[0] == "moveJ"]
+    assert len(moves) == len(poses) + 1           # the approach to the first pose, then every pose
+    for call, p in zip(moves[1:], poses):
+        assert np.allclose(call[1], p.joints) and call[2:] == (0.3, 0.5)
+    assert ("setTcp", [0.0] * 6) in fake_ur["log"]
+    for c in load_cameras(out):
+        e = camera_errors(c, truth[c.name])
+        assert e["centre_m"] < 1e-3 and e["rotation_deg"] < 0.05
