@@ -39,12 +39,14 @@ def _wrap(q: np.ndarray) -> np.ndarray:
     return (q + np.pi) % (2 * np.pi) - np.pi
 
 
-def ik_solutions(world_from_flange: np.ndarray, tol_m: float = 1e-6, tol_rad: float = 1e-5) -> np.ndarray:
+def ik_solutions(world_from_flange: np.ndarray, tol_m: float = 1e-6, tol_rad: float = 1e-5,
+                 verify: bool = True) -> np.ndarray:
     """(k, 6) joint solutions in [-pi, pi) that put the flange at ``world_from_flange``.
 
     k is 0 when the pose is out of reach. Solutions at a wrist singularity (sin q5 = 0)
     are dropped: there the arm cannot follow a straight line anyway. Every solution is
-    verified with the forward model to ``tol_m`` / ``tol_rad``.
+    verified with the forward model to ``tol_m`` / ``tol_rad`` (unless ``verify`` is False:
+    then the caller must verify the one it uses).
     """
     T = np.asarray(world_from_flange, float)
     p05 = T @ np.array([0.0, 0.0, -_D6, 1.0])
@@ -76,7 +78,7 @@ def ik_solutions(world_from_flange: np.ndarray, tol_m: float = 1e-6, tol_rad: fl
                 T34 = np.linalg.inv(_dh(q2, 1) @ _dh(q3, 2)) @ T14
                 q4 = np.arctan2(T34[1, 0], T34[0, 0])
                 q = _wrap(np.array([q1, q2, q3, q4, q5, q6]))
-                if _matches(q, T, tol_m, tol_rad):
+                if not verify or _matches(q, T, tol_m, tol_rad):
                     out.append(q)
     return np.array(out).reshape(-1, 6)
 
@@ -98,14 +100,17 @@ def ik_nearest(world_from_flange: np.ndarray, q_near: np.ndarray,
     the configuration a controller's ``moveL`` keeps.
     """
     q_near = np.asarray(q_near, float)
-    best, best_cost = None, np.inf
-    for q in ik_solutions(world_from_flange):
+    T = np.asarray(world_from_flange, float)
+    candidates = []
+    for q in ik_solutions(T, verify=False):
         q = q_near + _wrap(q - q_near)
         if np.any(q < lower - 1e-9) or np.any(q > upper + 1e-9):
             q = _wrap(q)  # fall back to the principal values
             if np.any(q < lower - 1e-9) or np.any(q > upper + 1e-9):
                 continue
-        cost = float(np.max(np.abs(q - q_near)))
-        if cost < best_cost:
-            best, best_cost = q, cost
-    return best
+        candidates.append((float(np.max(np.abs(q - q_near))), q))
+    # Verify only the winner (forward kinematics is the expensive part), then runners-up.
+    for _, q in sorted(candidates, key=lambda c: c[0]):
+        if _matches(q, T, 1e-6, 1e-5):
+            return q
+    return None

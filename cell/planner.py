@@ -20,10 +20,16 @@ feasible variant wins.
 
 Plan: open; joint move to ``pregrasp`` (``pregrasp_distance`` back along the approach, clear
 of the tape); linear ``approach`` to ``grasp`` (TCP ``inset`` in from the tip along the
-trunk); close; linear ``lift`` by ``lift`` metres along the peel direction: between the
-surface normal of the part's top (world z) and the chord from the tape's fixed base to
-the grasp, which pulls the tape off the adhesive line while keeping the gripper clear of
-the part.
+trunk); close; lift by ``lift`` metres (TCP path length) in linear moves of at most 10 mm
+(``lift_1`` ... ``lift``). Two lift modes:
+
+* "arc" (default): the gripper swings the tape's free end about the line where it is
+  stuck (its base), turning the base-to-grasp chord towards the vertical, and turns with
+  it. The free length never has to stretch, so the tape follows the gripper as long as
+  its base holds: the first phase of every peel, and all a simulated tape with a welded
+  base allows.
+* "peel": a straight pull between the part's top normal (world z) and the chord from the
+  base to the grasp, which drives the peel front along the adhesive line (real cell).
 
 Refusals raise :class:`PlanRefused` with ``reason`` one of "estimate rejected" (fit cost
 above the threshold), "unreachable" (no inverse kinematics, or a straight segment crosses a
@@ -42,7 +48,8 @@ from estimator.errors import TapecellError
 from .arm import Arm, ArmError
 from .kinematics import ik_nearest
 from .poses import as_transform, interpolate_pose6, invert, matrix_to_pose6, pose6_to_matrix
-from .safety import SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move
+from .safety import (SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
+                     check_points_flange)
 
 IK = Callable[[np.ndarray, np.ndarray], "np.ndarray | None"]
 """ik(world_from_flange 4x4, q_near (6,)) -> joints (6,) nearest q_near, or None."""
@@ -98,19 +105,26 @@ class GraspParams:
     inset: float
     pregrasp_distance: float
     lift: float
+    lift_mode: str = "arc"
+
+    def __post_init__(self) -> None:
+        if self.lift_mode not in ("arc", "peel"):
+            raise PlanRefused("limits", f"unknown lift mode '{self.lift_mode}' (arc or peel)")
 
     @classmethod
     def from_config(cls, section: Any) -> "GraspParams":
-        """From the cell file's ``[grasp]`` section (``sim.config.GraspSection``)."""
+        """From the cell file's ``[grasp]`` section (``sim.config.GraspSection``); its
+        optional ``lift_mode`` ("arc" or "peel") defaults to "arc"."""
         return cls(float(section.cost_threshold), float(section.inset), float(section.pregrasp_distance),
-                   float(section.lift))
+                   float(section.lift), str(getattr(section, "lift_mode", "arc")))
 
 
 @dataclass(frozen=True, eq=False)
 class GripperGeometry:
     """flange_from_tcp: 4x4; max_opening [m] between the pads; pad_size (3,) [m] full
     extents (x along the jaw, y thickness, z depth); finger_length [m] from the pad centre
-    back towards the flange, where the palm starts."""
+    back towards the flange, where the palm starts (from the cell file: the flange-to-TCP
+    depth less 30 mm of palm and mount)."""
 
     flange_from_tcp: np.ndarray
     max_opening: float
@@ -120,8 +134,10 @@ class GripperGeometry:
     @classmethod
     def from_config(cls, tool: Any) -> "GripperGeometry":
         """From the cell file's ``[tools.gripper]`` (``sim.config.GripperTool``)."""
-        return cls(pose6_to_matrix(tool.flange_from_tcp), float(tool.max_opening),
-                   np.asarray(tool.pad_size, float))
+        flange_from_tcp = pose6_to_matrix(tool.flange_from_tcp)
+        depth = float(np.linalg.norm(flange_from_tcp[:3, 3]))
+        return cls(flange_from_tcp, float(tool.max_opening), np.asarray(tool.pad_size, float),
+                   finger_length=max(depth - 0.03, float(tool.pad_size[2]) / 2))
 
     def finger_boxes_tcp(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """(lo, hi) boxes in the TCP frame of the two open fingers and the palm."""
@@ -134,13 +150,14 @@ class GripperGeometry:
         return boxes
 
     def check_points_flange(self) -> np.ndarray:
-        """(k, 3) points in the flange frame for the safety check: the TCP and the corners of
-        the open fingers' boxes."""
-        pts = [np.zeros(3)]
+        """(k, 3) points in the flange frame for the safety check: the flange origin, the
+        TCP, then the corners of the open fingers' boxes (as :class:`SafeArm` labels them)."""
+        corners = []
         for lo, hi in self.finger_boxes_tcp()[:2]:
-            pts += [np.array([x, y, z]) for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-        pts = np.array(pts)
-        return (self.flange_from_tcp @ np.c_[pts, np.ones(len(pts))].T).T[:, :3]
+            corners += [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        corners = np.array(corners)
+        corners_flange = (self.flange_from_tcp @ np.c_[corners, np.ones(len(corners))].T).T[:, :3]
+        return check_points_flange(self.flange_from_tcp, corners_flange)
 
 
 @dataclass(frozen=True, eq=False)
@@ -166,7 +183,8 @@ class Step:
 @dataclass(frozen=True, eq=False)
 class GraspPlan:
     """Waypoints (in visiting order), the steps that run them, the tip it was planned for,
-    the approach variant chosen, and the flange-frame check points of the gripper."""
+    the approach variant chosen, the flange-frame check points of the gripper, and the
+    overall lift direction (unit, grasp to final lift pose)."""
 
     waypoints: tuple[Waypoint, ...]
     steps: tuple[Step, ...]
@@ -237,12 +255,11 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     if tape_base is None and tape_points is not None:
         tape_base = np.asarray(tape_points, float)[0]
     grasp_position = tip.position - params.inset * tip.trunk
-    lift_dir = _lift_direction(grasp_position, tape_base)
     refusals: list[PlanRefused] = []
     for tilt in APPROACH_TILTS_RAD:
         for flipped in (False, True):
             try:
-                return _plan_variant(tip, grasp_position, lift_dir, tilt, flipped, params, gripper, limits,
+                return _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper, limits,
                                      ik, q_ref, q_start is not None, tape)
             except PlanRefused as e:
                 refusals.append(e)
@@ -250,14 +267,41 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     raise PlanRefused(first.reason, f"{first.detail} (and for all {len(refusals)} approach variants)")
 
 
-def _lift_direction(grasp_position: np.ndarray, tape_base: Any) -> np.ndarray:
+def lift_path(world_from_grasp: np.ndarray, tape_base: Any, lift: float, mode: str) -> list[np.ndarray]:
+    """world_from_tcp poses after the grasp, each within 10 mm of the previous, covering a
+    TCP path of ``lift`` metres (see the module docstring for the modes)."""
     up = np.array([0.0, 0.0, 1.0])
-    if tape_base is None:
-        return up
-    chord = grasp_position - np.asarray(tape_base, float)
-    n = np.linalg.norm(chord)
-    d = up + (chord / n if n > 1e-6 else 0.0)
-    return d / np.linalg.norm(d)
+    p = world_from_grasp[:3, 3]
+    chord = None if tape_base is None else p - np.asarray(tape_base, float)
+    k = max(int(np.ceil(lift / 0.01)), 1)
+    if mode == "arc" and chord is not None and np.linalg.norm(chord) > 1e-3:
+        radius = np.linalg.norm(chord)
+        axis = np.cross(chord, up)
+        if np.linalg.norm(axis) < 1e-6 * radius:
+            axis = np.cross(chord, world_from_grasp[:3, 1])   # vertical chord: swing across the jaw
+        axis /= np.linalg.norm(axis)
+        out = []
+        for i in range(1, k + 1):
+            R = _axis_angle(axis, (lift / radius) * i / k)
+            T = np.eye(4)
+            T[:3, :3] = R @ world_from_grasp[:3, :3]
+            T[:3, 3] = np.asarray(tape_base, float) + R @ chord
+            out.append(T)
+        return out
+    d = up if chord is None or np.linalg.norm(chord) < 1e-6 else up + chord / np.linalg.norm(chord)
+    d /= np.linalg.norm(d)
+    out = []
+    for i in range(1, k + 1):
+        T = world_from_grasp.copy()
+        T[:3, 3] = p + lift * d * i / k
+        out.append(T)
+    return out
+
+
+def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_rotvec(axis * angle).as_matrix()
 
 
 def tcp_rotation(tip: TipFrame, tilt: float, flipped: bool) -> np.ndarray:
@@ -272,25 +316,24 @@ def tcp_rotation(tip: TipFrame, tilt: float, flipped: bool) -> np.ndarray:
     return np.column_stack([np.cross(y, z), y, z])
 
 
-def _plan_variant(tip, grasp_position, lift_dir, tilt, flipped, params, gripper, limits, ik, q_ref,
+def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper, limits, ik, q_ref,
                   check_joint_path, tape) -> GraspPlan:
     R = tcp_rotation(tip, tilt, flipped)
     approach = R[:, 2]
-    world_from_tcp = {
-        "pregrasp": _T(R, grasp_position - params.pregrasp_distance * approach),
-        "grasp": _T(R, grasp_position),
-        "lift": _T(R, grasp_position + params.lift * lift_dir),
-    }
+    world_from_tcp = {"pregrasp": _T(R, grasp_position - params.pregrasp_distance * approach),
+                      "grasp": _T(R, grasp_position)}
+    lifts = lift_path(world_from_tcp["grasp"], tape_base, params.lift, params.lift_mode)
+    lift_names = [f"lift_{i}" for i in range(1, len(lifts))] + ["lift"]
+    world_from_tcp.update(zip(lift_names, lifts))
+    names = list(world_from_tcp)
     tcp_from_flange = invert(gripper.flange_from_tcp)
     flange = {k: matrix_to_pose6(T @ tcp_from_flange) for k, T in world_from_tcp.items()}
     points = gripper.check_points_flange()
     try:
         check_linear_move(limits, flange["pregrasp"], flange["pregrasp"], limits.max_tcp_speed,
                           limits.max_tcp_accel, points)
-        check_linear_move(limits, flange["pregrasp"], flange["grasp"], limits.max_tcp_speed,
-                          limits.max_tcp_accel, points)
-        check_linear_move(limits, flange["grasp"], flange["lift"], limits.max_tcp_speed,
-                          limits.max_tcp_accel, points)
+        for a, b in zip(names[:-1], names[1:]):
+            check_linear_move(limits, flange[a], flange[b], limits.max_tcp_speed, limits.max_tcp_accel, points)
     except SafetyError as e:
         raise PlanRefused("collision" if "keep-out" in str(e) else "limits", str(e)) from None
     if tape is not None:
@@ -306,13 +349,15 @@ def _plan_variant(tip, grasp_position, lift_dir, tilt, flipped, params, gripper,
         except SafetyError as e:
             raise PlanRefused("collision" if "keep-out" in str(e) else "limits",
                               f"joint move to the pre-grasp pose: {e}") from None
-    q_grasp = _follow_line(ik, flange["pregrasp"], flange["grasp"], q_pre, "approach")
-    q_lift = _follow_line(ik, flange["grasp"], flange["lift"], q_grasp, "lift")
-    q = {"pregrasp": q_pre, "grasp": q_grasp, "lift": q_lift}
-    waypoints = tuple(Waypoint(k, world_from_tcp[k], flange[k], q[k]) for k in ("pregrasp", "grasp", "lift"))
+    q = {"pregrasp": q_pre}
+    for a, b in zip(names[:-1], names[1:]):
+        q[b] = _follow_line(ik, flange[a], flange[b], q[a], "approach" if b == "grasp" else "lift")
+    waypoints = tuple(Waypoint(k, world_from_tcp[k], flange[k], q[k]) for k in names)
     steps = (Step("open_gripper"), Step("move_joints", "pregrasp"), Step("move_linear", "grasp"),
-             Step("close_gripper"), Step("move_linear", "lift"))
-    return GraspPlan(waypoints, steps, tip, float(tilt), bool(flipped), points, lift_dir)
+             Step("close_gripper"), *(Step("move_linear", k) for k in lift_names))
+    lift_vector = lifts[-1][:3, 3] - grasp_position
+    return GraspPlan(waypoints, steps, tip, float(tilt), bool(flipped), points,
+                     lift_vector / max(np.linalg.norm(lift_vector), 1e-12))
 
 
 def _follow_line(ik: IK, start: np.ndarray, end: np.ndarray, q0: np.ndarray, what: str) -> np.ndarray:
@@ -387,7 +432,7 @@ def execute_plan(plan: GraspPlan, arm: Arm, limits: SafetyLimits, speeds: Speeds
     would violate a limit halfway never starts. On any error the arm is stopped and the
     error re-raised. ``on_step(step, arm)`` is called after each step (logging). Returns
     the steps done."""
-    safe = SafeArm(arm, limits, extra_points_flange=plan.points_flange)
+    safe = SafeArm(arm, limits, points_flange=plan.points_flange)
     _precheck(plan, limits, speeds)
     done: list[Step] = []
     try:
@@ -437,7 +482,7 @@ def _run_step(arm: Arm, plan: GraspPlan, step: Step, speeds: Speeds) -> None:
     elif step.action == "move_joints":
         arm.move_joints(plan.waypoint(step.waypoint).q, speeds.joint, speeds.joint_accel)
     elif step.action == "move_linear":
-        speed = speeds.lift if step.waypoint == "lift" else speeds.approach
+        speed = speeds.lift if step.waypoint.startswith("lift") else speeds.approach
         arm.move_linear(plan.waypoint(step.waypoint).flange_pose, speed, speeds.linear_accel)
     else:
         raise ArmError(f"unknown plan step '{step.action}'")

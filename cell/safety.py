@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from estimator.errors import TapecellError
 
@@ -98,44 +99,51 @@ def _fmt(v: np.ndarray) -> str:
 
 def segment_hits_box(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> bool:
     """True when the closed segment a-b meets the open box (lo, hi) (slab test)."""
+    return bool(segments_hit_box(np.asarray(a, float)[None], np.asarray(b, float)[None], lo, hi)[0])
+
+
+def segments_hit_box(a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(n,) bool: which segments a[i]-b[i] ((n, 3) each) meet the open box (lo, hi)."""
     d = b - a
-    t0, t1 = 0.0, 1.0
+    t0 = np.zeros(len(a))
+    t1 = np.ones(len(a))
+    ok = np.ones(len(a), bool)
     for k in range(3):
-        if abs(d[k]) < 1e-15:
-            if not lo[k] < a[k] < hi[k]:
-                return False
-            continue
-        ta, tb = (lo[k] - a[k]) / d[k], (hi[k] - a[k]) / d[k]
-        if ta > tb:
-            ta, tb = tb, ta
-        t0, t1 = max(t0, ta), min(t1, tb)
-        if t0 >= t1:
-            return False
-    return True
+        flat = np.abs(d[:, k]) < 1e-15
+        ok &= ~flat | ((lo[k] < a[:, k]) & (a[:, k] < hi[k]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ta = (lo[k] - a[:, k]) / d[:, k]
+            tb = (hi[k] - a[:, k]) / d[:, k]
+        near, far = np.minimum(ta, tb), np.maximum(ta, tb)
+        t0 = np.where(flat, t0, np.maximum(t0, near))
+        t1 = np.where(flat, t1, np.minimum(t1, far))
+    return ok & (t0 < t1)
 
 
-def _inside(p: np.ndarray, lo: np.ndarray, hi: np.ndarray, tol: float = 1e-9) -> bool:
-    return bool(np.all(p >= lo - tol) and np.all(p <= hi + tol))
+def _inside(p: np.ndarray, lo: np.ndarray, hi: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Which points (..., 3) lie in the closed box (lo, hi)."""
+    return np.all((p >= lo - tol) & (p <= hi + tol), axis=-1)
 
 
 def _check_box_path(limits: SafetyLimits, paths: np.ndarray, labels: list[str], motion: str) -> None:
     """paths: (n_samples, k, 3) world positions of k points along a motion."""
-    start, target = paths[0], paths[-1]
+    lo, hi = limits.workspace_min, limits.workspace_max
+    inside = _inside(paths, lo, hi)
+    hits = np.stack([segments_hit_box(paths[:-1, j], paths[1:, j], limits.keepout_min, limits.keepout_max)
+                     for j in range(paths.shape[1])], axis=1) if len(paths) > 1 else np.zeros((0, paths.shape[1]), bool)
     for j, label in enumerate(labels):
-        if not _inside(target[j], limits.workspace_min, limits.workspace_max):
-            raise SafetyError(f"{motion}: the {label} target {_fmt(target[j])} m is outside the workspace box "
-                              f"{_fmt(limits.workspace_min)}..{_fmt(limits.workspace_max)}")
+        if not inside[-1, j]:
+            raise SafetyError(f"{motion}: the {label} target {_fmt(paths[-1, j])} m is outside the workspace box "
+                              f"{_fmt(lo)}..{_fmt(hi)}")
         # The box is convex: a path from inside stays inside unless the orientation sweeps
         # the point out, which the samples catch. A start outside (recovery) is allowed.
-        if _inside(start[j], limits.workspace_min, limits.workspace_max):
-            for p in paths[:, j]:
-                if not _inside(p, limits.workspace_min, limits.workspace_max):
-                    raise SafetyError(f"{motion}: the {label} passes {_fmt(p)} m, outside the workspace box")
-        for i in range(len(paths) - 1):
-            if segment_hits_box(paths[i, j], paths[i + 1, j], limits.keepout_min, limits.keepout_max):
-                raise SafetyError(f"{motion}: the {label} would enter the keep-out box around the part "
-                                  f"{_fmt(limits.keepout_min)}..{_fmt(limits.keepout_max)} near "
-                                  f"{_fmt(paths[i + 1, j])} m")
+        if inside[0, j] and not np.all(inside[:, j]):
+            p = paths[np.argmin(inside[:, j]), j]
+            raise SafetyError(f"{motion}: the {label} passes {_fmt(p)} m, outside the workspace box")
+        if np.any(hits[:, j]):
+            p = paths[np.argmax(hits[:, j]) + 1, j]
+            raise SafetyError(f"{motion}: the {label} would enter the keep-out box around the part "
+                              f"{_fmt(limits.keepout_min)}..{_fmt(limits.keepout_max)} near {_fmt(p)} m")
 
 
 def _point_labels(k: int) -> list[str]:
@@ -160,7 +168,8 @@ def check_linear_move(limits: SafetyLimits, start_pose: Any, target_pose: Any, s
     # Fine enough that no sample step moves any point more than ~2 mm.
     n = int(np.ceil((np.linalg.norm(b[:3] - a[:3]) + reach * angle) / 0.002)) + 2
     poses = interpolate_pose6(a, b, min(n, 2000))
-    paths = np.array([(pose6_to_matrix(p) @ np.c_[pts, np.ones(len(pts))].T).T[:, :3] for p in poses])
+    R = Rotation.from_rotvec(poses[:, 3:]).as_matrix()                # (n, 3, 3)
+    paths = np.einsum("nij,kj->nki", R, pts) + poses[:, None, :3]    # (n, k, 3)
     _check_box_path(limits, paths, _point_labels(len(pts)), "linear move")
 
 
@@ -189,24 +198,27 @@ def check_joint_move(limits: SafetyLimits, q_start: Any, q_target: Any, speed: f
     _check_box_path(limits, np.array(tool_paths), _point_labels(len(pts)), "joint move")
     wrist = np.array(wrist_paths)
     for j, label in enumerate(("wrist 2 centre", "wrist 3 centre")):
-        for i in range(len(wrist) - 1):
-            if segment_hits_box(wrist[i, j], wrist[i + 1, j], limits.keepout_min, limits.keepout_max):
-                raise SafetyError(f"joint move: the {label} would enter the keep-out box around the part")
+        if np.any(segments_hit_box(wrist[:-1, j], wrist[1:, j], limits.keepout_min, limits.keepout_max)):
+            raise SafetyError(f"joint move: the {label} would enter the keep-out box around the part")
 
 
 class SafeArm(Arm):
     """An :class:`Arm` whose every motion is checked against ``limits`` first.
 
     ``flange_from_tool`` (4x4 or pose6) is the mounted tool, whose TCP is checked along with
-    the flange; ``extra_points_flange`` (N, 3) adds points such as finger tips. Motions
+    the flange; ``extra_points_flange`` (N, 3) adds points such as finger tips;
+    ``points_flange`` (k, 3) replaces the whole list (flange origin first). Motions
     start from the arm's reported pose, so the straight-line check covers the real path.
     """
 
     def __init__(self, arm: Arm, limits: SafetyLimits, flange_from_tool: Any = None,
-                 extra_points_flange: Any = None) -> None:
+                 extra_points_flange: Any = None, points_flange: Any = None) -> None:
         self.arm = arm
         self.limits = limits
-        self.points_flange = check_points_flange(flange_from_tool, extra_points_flange)
+        if points_flange is not None:   # a full list, e.g. GripperGeometry.check_points_flange()
+            self.points_flange = np.asarray(points_flange, float).reshape(-1, 3)
+        else:
+            self.points_flange = check_points_flange(flange_from_tool, extra_points_flange)
         self.name = f"safe {arm.name}"
 
     @property

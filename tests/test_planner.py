@@ -67,11 +67,32 @@ def test_grasp_geometry_pads_straddle_the_normal_inset_from_the_tip():
         # Pre-grasp back along the approach, clear of the tape's end; lift raises the TCP.
         pre = plan.waypoint("pregrasp").world_from_tcp[:3, 3]
         np.testing.assert_allclose(grasp[:3, 3] - pre, PARAMS.pregrasp_distance * z, atol=1e-12)
-        lift = plan.waypoint("lift").world_from_tcp[:3, 3] - grasp[:3, 3]
-        assert abs(np.linalg.norm(lift) - PARAMS.lift) < 1e-12 and lift[2] > 0.02
-        assert [s.action for s in plan.steps] == ["open_gripper", "move_joints", "move_linear",
-                                                  "close_gripper", "move_linear"]
+        # Lift: an arc of length `lift` about the tape's base, in steps of <= 10 mm, that
+        # never stretches the free length and raises the tip unless it is already on top.
+        lifts = [w.world_from_tcp[:3, 3] for w in plan.waypoints[1:]]
+        steps = np.linalg.norm(np.diff(lifts, axis=0), axis=1)
+        assert np.all(steps <= 0.0101) and abs(steps.sum() - PARAMS.lift) < 0.001
+        radius = np.linalg.norm(grasp[:3, 3] - BASE)
+        assert np.allclose(np.linalg.norm(np.array(lifts) - BASE, axis=1), radius, atol=1e-9)
+        chord = (grasp[:3, 3] - BASE) / radius
+        if chord[2] < np.cos(PARAMS.lift / radius):
+            assert lifts[-1][2] > grasp[2, 3] + 0.005
+        assert [s.action for s in plan.steps][:4] == ["open_gripper", "move_joints", "move_linear", "close_gripper"]
+        assert [s.waypoint for s in plan.steps[4:]] == [w.name for w in plan.waypoints[2:]]
+        assert plan.steps[-1].waypoint == "lift"
     assert planned >= 20
+
+
+def test_peel_mode_pulls_straight_up_and_away():
+    tip, nodes = tape(np.zeros(15))
+    params = GraspParams(0.15, 0.008, 0.05, 0.05, lift_mode="peel")
+    plan = plan_grasp(tip, params, GRIPPER, LIMITS, tape_points=nodes)
+    grasp = plan.waypoint("grasp").world_from_tcp
+    lift = plan.waypoint("lift").world_from_tcp
+    np.testing.assert_allclose(lift[:3, :3], grasp[:3, :3])      # a pull, no turn
+    np.testing.assert_allclose(lift[:3, 3] - grasp[:3, 3], [0.0, 0.0, 0.05], atol=1e-9)
+    with pytest.raises(PlanRefused, match="lift mode"):
+        GraspParams(0.15, 0.008, 0.05, 0.05, lift_mode="yank")
 
 
 def test_refuses_a_bad_estimate():
@@ -138,9 +159,9 @@ def test_execute_plan_on_the_fake_arm_reaches_every_waypoint():
     with arm:
         done = execute_plan(plan, arm, LIMITS, Speeds(), on_step=lambda s, a: seen.append(a.tcp_pose()))
         assert max(pose_distance(arm.tcp_pose(), plan.waypoint("lift").flange_pose)) < 1e-6
-    assert done == list(plan.steps) and len(seen) == 5
+    assert done == list(plan.steps) and len(seen) == len(plan.steps)
     assert arm.call_names() == ["connect", "open_gripper", "move_joints", "move_linear", "close_gripper",
-                                "move_linear", "disconnect"]
+                                *["move_linear"] * (len(plan.steps) - 4), "disconnect"]
     _, (pose, speed, acc) = arm.calls[3]
     np.testing.assert_allclose(pose, plan.waypoint("grasp").flange_pose)
     assert speed <= LIMITS.max_tcp_speed and acc <= LIMITS.max_tcp_accel
@@ -177,6 +198,7 @@ def test_plan_to_json_and_describe():
     tip, nodes = tape(np.zeros(15))
     plan = plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes)
     d = plan.to_json()
-    assert [w["name"] for w in d["waypoints"]] == ["pregrasp", "grasp", "lift"]
-    assert list(plan.tool_waypoints()) == ["pregrasp", "grasp", "lift"]
+    names = ["pregrasp", "grasp", "lift_1", "lift_2", "lift_3", "lift_4", "lift"]
+    assert [w["name"] for w in d["waypoints"]] == names
+    assert list(plan.tool_waypoints()) == names
     assert "grasp" in plan.describe() and "close_gripper" in plan.describe()
