@@ -36,10 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def confirm(prompt: str = "Execute this plan on the real arm? Type 'yes': ") -> bool:
-    """Ask on the terminal; refuse (error) when there is no terminal to ask on."""
-    if not sys.stdin.isatty():
-        raise TapecellError("--execute asks for confirmation on a terminal, and standard input is not one; "
-                            "nothing moved")
+    """Ask on the terminal (``run`` has checked that there is one)."""
     try:
         return input(prompt).strip().lower() == "yes"
     except EOFError:
@@ -90,6 +87,9 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_cell_config(args.config)
     cameras = load_cameras(args.cameras)
+    if args.execute and not sys.stdin.isatty():
+        raise TapecellError("--execute asks for confirmation on a terminal, and standard input is not one; "
+                            "nothing moved")
     limits = SafetyLimits.from_config(cfg.limits)
     stream = rec.open_recording(args.rrd, "tapecell-run", [c.name for c in cameras]) if args.rrd else None
     try:

@@ -1,0 +1,67 @@
+"""`tapecell run` (the real cell) on images rendered by the sim: it plans without moving,
+and never moves without --execute and a terminal to confirm on."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import pytest
+
+from cell.cli import main
+from estimator.capture import save_cameras
+from sim.cell import SimCell
+from sim.config import default_cell_path, load_cell_config
+
+
+@pytest.fixture(scope="module")
+def real_like(tmp_path_factory) -> tuple[Path, Path]:
+    """Camera images as the real cell's folder source expects them, and their cameras file."""
+    root = tmp_path_factory.mktemp("real")
+    with SimCell(load_cell_config(), seed=4, n_cameras=2, tool="gripper") as cell:
+        (root / "images" / "000").mkdir(parents=True)
+        for cam in cell.cameras():
+            rgb = cell.render_rgb(cam.name)
+            cv2.imwrite(str(root / "images" / "000" / f"{cam.name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        save_cameras(cell.cameras(), root / "cameras.json")
+    return root / "images", root / "cameras.json"
+
+
+@pytest.fixture
+def no_robot(monkeypatch):
+    import cell.ur
+
+    def refuse(*a, **k):
+        raise AssertionError("the dry run must not touch the robot")
+    monkeypatch.setattr(cell.ur, "URArm", refuse)
+
+
+def test_dry_run_plans_and_moves_nothing(real_like, no_robot, tmp_path, capsys):
+    images, cameras = real_like
+    saved = tmp_path / "saved"
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--save-capture", str(saved), "--rrd", str(tmp_path / "run.rrd")])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "grasp plan" in out and "pregrasp" in out and "grasp " in out
+    assert "nothing moved" in out
+    assert (saved / "capture.json").exists() and (saved / "cam0_rgb.png").exists()
+    assert main(["estimate", str(saved)]) == 0  # the saved capture replays
+    assert (tmp_path / "run.rrd").stat().st_size > 0
+
+
+def test_execute_without_a_terminal_refuses_before_connecting(real_like, no_robot, monkeypatch, capsys):
+    images, cameras = real_like
+    monkeypatch.setattr("sys.stdin.isatty", lambda: False)
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute"])
+    out, err = capsys.readouterr()
+    assert code == 2
+    assert "confirmation on a terminal" in err and "nothing moved" in err
+
+
+def test_missing_images_is_one_line(real_like, tmp_path, capsys):
+    _, cameras = real_like
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras),
+                 "--images", str(tmp_path / "nowhere")])
+    out, err = capsys.readouterr()
+    assert code == 2 and err.count("\n") == 1 and "nowhere" in err
