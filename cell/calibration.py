@@ -8,8 +8,9 @@ K, R, t; then ``cv2.calibrateCamera`` with ``CALIB_USE_INTRINSIC_GUESS`` on all 
 one view, the distortion terms chosen by the cell file fixed or free; gross outliers
 removed and the solve repeated. The result is in the robot's base frame directly.
 
-This module is the numerical part and the pose planner; :mod:`cell.calibrate_run` is
-not needed: :func:`run_calibration` drives any :class:`cell.arm.Arm` and camera source.
+Here: the solver (:func:`calibrate_camera`), the pose planner (:func:`plan_poses`) and
+the procedure (:func:`run_calibration`), which drives any :class:`cell.arm.Arm` and any
+camera source (simulated renders, ``cell.cameras_real``) the same way.
 """
 from __future__ import annotations
 
@@ -33,7 +34,7 @@ class CalibrationError(TapecellError):
 
 
 DISTORTION_MODELS = {
-    # model name -> (number of free terms in k1, k2, p1, p2, k3 order, calibrateCamera flags)
+    # cell file's calibration.distortion_model -> calibrateCamera flags fixing the other terms
     "none": cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
     "k1": cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
     "k1k2": cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST,
