@@ -57,6 +57,8 @@ LM_SCREEN = 4
 LM_ITERATIONS = 10
 ANGLE_PRIOR = 0.05
 """Weight of a weak preference for small joint angles in the global stage."""
+ANGLE_PRIOR_PX = 1.0
+"""Residual [px] per radian of every joint angle in the local stage (a weak prior)."""
 
 _EDGE_T = np.array([0.25, 0.5, 0.75, 1.0])
 _TIP_T = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
@@ -81,24 +83,20 @@ _GRID_R = joint_rotations(_GRID)
 class _Field:
     """One view prepared for the boundary fit.
 
-    camera: its calibration; x0, y0: ROI origin [px]; field: (h, w, 3) float32 of the
-    signed distance to the observed boundary [px] (negative inside) and its x/y gradient;
-    ignore: (h, w) bool ROI of the ignore mask or None; target: the cleaned mask as a
-    :class:`ViewTarget` for the silhouette cost.
+    camera: its calibration; x0, y0: ROI origin [px]; field: (h, w, 4) float32 of the
+    signed distance to the observed boundary [px] (negative inside), its x/y gradient and
+    1 where the pixel is ignored; has_ignore: whether the view has an ignore mask;
+    target: the cleaned mask as a :class:`ViewTarget` for the silhouette cost;
+    outline: (P, 2) points on the observed outline [px, full image].
     """
 
     camera: Camera
     x0: int
     y0: int
     field: np.ndarray
-    ignore: np.ndarray | None
+    has_ignore: bool
     target: ViewTarget
     outline: np.ndarray
-
-    @property
-    def flat(self) -> np.ndarray:
-        """The field as (h*w, 3) rows for fast gathering."""
-        return self.field.reshape(-1, 3)
 
 
 def _clean_mask(mask: np.ndarray) -> np.ndarray:
@@ -149,12 +147,13 @@ def _prepare(view: View) -> _Field:
     sdf = np.where(solid > 0, 0.5 - inside, outside - 0.5).astype(np.float32)
     gx = cv2.Sobel(sdf, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
     gy = cv2.Sobel(sdf, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    field = np.ascontiguousarray(np.dstack([sdf, gx, gy]))
+    ign = np.zeros_like(sdf) if ignore is None else ignore.astype(np.float32)
+    field = cv2.merge([sdf, gx, gy, ign])
     valid = None if ignore is None else (~ignore).astype(np.uint8)
     observed = roi if valid is None else roi & valid
     target = ViewTarget(cam, x0, y0, np.ascontiguousarray(observed), valid,
                         max(1.0, float(cv2.countNonZero(observed))))
-    return _Field(cam, x0, y0, field, ignore, target, _outline(roi, ignore, x0, y0))
+    return _Field(cam, x0, y0, field, ignore is not None, target, _outline(roi, ignore, x0, y0))
 
 
 def _outline(roi: np.ndarray, ignore: np.ndarray | None, x0: int, y0: int) -> np.ndarray:
@@ -173,52 +172,44 @@ def _outline(roi: np.ndarray, ignore: np.ndarray | None, x0: int, y0: int) -> np
 
 # --------------------------------------------------------------------------- sampling
 
-def _sample(field: _Field, u: np.ndarray, v: np.ndarray, gradient: bool):
-    """Bilinear look-up of the SDF (and its gradient) at pixel coordinates (u, v).
+def _lookup(field: _Field, u: np.ndarray, v: np.ndarray):
+    """Bilinear look-up (one ``cv2.remap`` call) of the SDF, its gradient and the ignore
+    flag at pixel coordinates (u, v) of any shape.
 
     Outside the ROI the SDF continues as the value at the ROI's edge plus the distance to
-    it, so the fit is pulled back in. Returns (sdf, gx, gy, ignored).
+    it, and its gradient points back towards the ROI. Returns (sdf, gx, gy, ignored|None).
     """
     h, w = field.field.shape[:2]
-    x = u - field.x0
-    y = v - field.y0
-    bad = ~(np.isfinite(x) & np.isfinite(y))
-    if bad.any():
-        x = np.where(bad, 0.0, x)
-        y = np.where(bad, 0.0, y)
-    xc = np.clip(x, 0.0, w - 1.001)
-    yc = np.clip(y, 0.0, h - 1.001)
-    extra = np.abs(x - xc) + np.abs(y - yc)
-    xi = xc.astype(np.intp)
-    yi = yc.astype(np.intp)
-    fx = (xc - xi)
-    fy = (yc - yi)
-    idx = yi * w + xi
-    corners = np.take(field.flat, np.stack([idx, idx + 1, idx + w, idx + w + 1]), axis=0)
-    wts = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])[..., None]
-    val = np.sum(corners * wts, axis=0)
-    sdf = val[..., 0] + extra
-    if field.ignore is not None:
-        ignored = field.ignore[np.rint(yc).astype(np.intp), np.rint(xc).astype(np.intp)] & (extra == 0)
-    else:
-        ignored = None
-    if bad.any():
-        sdf = np.where(bad, 1e3, sdf)
-    gx, gy = val[..., 1], val[..., 2]
-    if gradient and extra.any():
-        # Beyond the ROI the pull points back towards it.
-        ox = x - xc
-        oy = y - yc
-        gx = np.where(ox != 0, np.sign(ox), gx)
-        gy = np.where(oy != 0, np.sign(oy), gy)
-    return sdf, gx, gy, ignored
+    shape = u.shape
+    x = (u - field.x0).reshape(-1)
+    y = (v - field.y0).reshape(-1)
+    xc = np.clip(x, 0.0, w - 1.0)
+    yc = np.clip(y, 0.0, h - 1.0)
+    ox = x - xc
+    oy = y - yc
+    n = x.size
+    cols = 8192
+    rows = -(-n // cols) if n > cols else 1
+    width = cols if n > cols else n
+    mx = np.zeros(rows * width, np.float32)
+    my = np.zeros(rows * width, np.float32)
+    mx[:n] = xc
+    my[:n] = yc
+    val = cv2.remap(field.field, mx.reshape(rows, width), my.reshape(rows, width), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_REPLICATE).reshape(-1, 4)[:n]
+    extra = np.abs(ox) + np.abs(oy)
+    outside = extra > 0
+    sdf = val[:, 0] + extra
+    gx = np.where(ox != 0, np.sign(ox), val[:, 1])
+    gy = np.where(oy != 0, np.sign(oy), val[:, 2])
+    ignored = ((val[:, 3] > 0.5) & ~outside).reshape(shape) if field.has_ignore else None
+    return sdf.reshape(shape), gx.reshape(shape), gy.reshape(shape), ignored
 
 
 def _project(camera: Camera, pts: np.ndarray):
-    """Pixels of world points and the camera-frame coordinates (for the Jacobian)."""
+    """Pixels (u, v) of world points (..., 3) and their camera-frame x/z, y/z and z."""
     pc = pts @ camera.R.T + camera.t
-    z = pc[..., 2]
-    z = np.where(z > 1e-6, z, 1e-6)
+    z = np.maximum(pc[..., 2], 1e-6)
     x = pc[..., 0] / z
     y = pc[..., 1] / z
     if camera.has_distortion:
@@ -231,22 +222,45 @@ def _project(camera: Camera, pts: np.ndarray):
     return u, v, x, y, z
 
 
+def _pixel_jacobian(camera: Camera, x, y, z, J: np.ndarray) -> np.ndarray:
+    """(..., 2, N) d(u, v)/d(angles) of points with world Jacobian J (..., 3, N), pinhole
+    part (lens distortion is a small correction the iterations absorb)."""
+    K = camera.K
+    inv_z = 1.0 / z
+    duv = np.zeros(z.shape + (2, 3))
+    duv[..., 0, 0] = K[0, 0] * inv_z
+    duv[..., 0, 1] = K[0, 1] * inv_z
+    duv[..., 0, 2] = -(K[0, 0] * x + K[0, 1] * y) * inv_z
+    duv[..., 1, 1] = K[1, 1] * inv_z
+    duv[..., 1, 2] = -K[1, 1] * y * inv_z
+    return (duv @ camera.R) @ J
+
+
 def _robust(r: np.ndarray, inside_edge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Robust loss ρ(r) and IRLS weight: Cauchy for edge points inside the silhouette,
     Huber otherwise."""
     a = np.abs(r)
-    huber_rho = np.where(a <= DELTA_OUT_PX, 0.5 * r * r, DELTA_OUT_PX * (a - 0.5 * DELTA_OUT_PX))
-    huber_w = np.where(a <= DELTA_OUT_PX, 1.0, DELTA_OUT_PX / np.maximum(a, 1e-12))
+    small = a <= DELTA_OUT_PX
+    huber_rho = np.where(small, 0.5 * r * r, DELTA_OUT_PX * (a - 0.5 * DELTA_OUT_PX))
+    huber_w = np.where(small, 1.0, DELTA_OUT_PX / np.maximum(a, 1e-12))
     q = (r / DELTA_IN_PX) ** 2
     cauchy_rho = 0.5 * DELTA_IN_PX ** 2 * np.log1p(q)
     cauchy_w = 1.0 / (1.0 + q)
     return np.where(inside_edge, cauchy_rho, huber_rho), np.where(inside_edge, cauchy_w, huber_w)
 
 
+def _huber(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Huber loss and IRLS weight of non-negative distances [px]."""
+    small = d <= DELTA_OUT_PX
+    rho = np.where(small, 0.5 * d * d, DELTA_OUT_PX * (d - 0.5 * DELTA_OUT_PX))
+    return rho, np.where(small, 1.0, DELTA_OUT_PX / np.maximum(d, 1e-12))
+
+
 # --------------------------------------------------------------------------- the chain
 
 class _Chain:
-    """Sample points on the chain's silhouette-relevant parts and their Jacobian."""
+    """Sample points on the chain's silhouette-relevant parts and their Jacobian, for a
+    batch of B angle sets at once."""
 
     def __init__(self, spec: TapeSpec):
         self.spec = spec
@@ -285,131 +299,154 @@ class _Chain:
         self.segments = np.array(left + right + [(m + n, 2 * m + n), (m, 2 * m)])
         # corner c belongs to the frame of node c % m: it moves with joints 1..c % m
         node_of = np.tile(np.arange(m), 3)
-        self.moves = node_of[:, None] >= np.arange(1, m)[None, :]  # (3m, n)
+        self.moves = (node_of[:, None] >= np.arange(1, m)[None, :]).astype(float)  # (3m, n)
 
     def points(self, angles: np.ndarray, jacobian: bool):
-        """(s, 3) sample points and, if asked, their (s, 3, 3n) Jacobian."""
+        """(B, n, 3) angles -> (B, s + 3m, 3) sample points then corners and, if asked,
+        their (B, s + 3m, 3, 3n) Jacobian."""
         spec = self.spec
-        shape = forward_kinematics(spec, angles)
-        corners = np.concatenate([shape.nodes, shape.left, shape.right])
-        pts = np.concatenate([self.M @ corners, corners])
+        B, n, m = len(angles), self.n, self.n + 1
+        Rj = joint_rotations(angles.reshape(-1, 3)).reshape(B, n, 3, 3)
+        frames = np.empty((B, m, 3, 3))
+        nodes = np.empty((B, m, 3))
+        frames[:, 0] = spec.base_rotation
+        nodes[:, 0] = spec.base_position
+        for i in range(n):
+            frames[:, i + 1] = frames[:, i] @ Rj[:, i]
+            nodes[:, i + 1] = nodes[:, i] + spec.segment_lengths[i] * frames[:, i + 1, :, 0]
+        half = 0.5 * spec.width * frames[:, :, :, 1]
+        corners = np.concatenate([nodes, nodes + half, nodes - half], axis=1)      # (B, 3m, 3)
+        pts = np.concatenate([self.M @ corners, corners], axis=1)
         if not jacobian:
             return pts, None
-        frames = shape.frames
-        Rz = joint_rotations(np.column_stack([np.zeros(self.n), np.zeros(self.n), angles[:, 2]]))
-        axes = np.stack([frames[1:, :, 0],                                 # θx: F_j e_x
-                         np.einsum("jab,jb->ja", frames[:-1], Rz[:, :, 1]),  # θy: F_{j-1} Rz e_y
-                         frames[:-1, :, 2]], axis=1)                       # θz: F_{j-1} e_z
-        pivots = shape.nodes[:-1]                                          # (n, 3)
-        rel = corners[:, None, :] - pivots[None, :, :]                     # (3m, n, 3)
-        Jc = np.cross(axes[None, :, :, :], rel[:, :, None, :])             # (3m, n, 3 axes, 3 xyz)
-        Jc *= self.moves[:, :, None, None]
-        Jc = Jc.transpose(0, 3, 1, 2).reshape(len(corners), 3, 3 * self.n)
-        J = np.concatenate([np.einsum("sc,cxp->sxp", self.M, Jc), Jc])
+        cz, sz = np.cos(angles[:, :, 2])[..., None], np.sin(angles[:, :, 2])[..., None]
+        axes = np.stack([frames[:, 1:, :, 0],                                      # θx: F_j e_x
+                         cz * frames[:, :-1, :, 1] - sz * frames[:, :-1, :, 0],     # θy: F_{j-1} Rz e_y
+                         frames[:, :-1, :, 2]], axis=2)                             # θz: F_{j-1} e_z
+        a = axes[:, None]                                                          # (B, 1, n, 3, 3)
+        r = (corners[:, :, None, :] - nodes[:, None, :-1, :])[:, :, :, None, :]   # (B, 3m, n, 1, 3)
+        Jc = np.stack([a[..., 1] * r[..., 2] - a[..., 2] * r[..., 1],
+                       a[..., 2] * r[..., 0] - a[..., 0] * r[..., 2],
+                       a[..., 0] * r[..., 1] - a[..., 1] * r[..., 0]], axis=2)   # (B, 3m, 3, n, 3)
+        Jc *= self.moves[None, :, None, :, None]
+        Jc = Jc.reshape(B, 3 * m, 3 * 3 * n)
+        Js = (self.M @ Jc)
+        J = np.concatenate([Js, Jc], axis=1).reshape(B, -1, 3, 3 * n)
         return pts, J
 
 
-def _pixel_jacobian(camera: Camera, x, y, z, J: np.ndarray) -> np.ndarray:
-    """(s, 2, N) d(u, v)/d(angles) of points with world Jacobian J (s, 3, N), pinhole part
-    (lens distortion is a small correction the iterations absorb)."""
-    K = camera.K
-    inv_z = 1.0 / z
-    du = np.stack([K[0, 0] * inv_z, K[0, 1] * inv_z, -(K[0, 0] * x + K[0, 1] * y) * inv_z], axis=1)
-    dv = np.stack([np.zeros_like(z), K[1, 1] * inv_z, -K[1, 1] * y * inv_z], axis=1)
-    duv = np.stack([du, dv], axis=1) @ camera.R                      # (s, 2, 3)
-    return np.einsum("sax,sxp->sap", duv, J)
-
-
-def _coverage(chain: "_Chain", f: _Field, u, v, x, y, z, J):
+def _coverage(chain: _Chain, f: _Field, u, v, Juv):
     """Observed outline points' distance to the model's outline: every part of the observed
-    silhouette must be explained (the reverse of the edge term). Returns (robust cost,
-    weighted residuals, Jacobian or None)."""
+    silhouette must be explained (the reverse of the edge term). u, v: (B, 3m) corner
+    pixels; Juv: their (B, 3m, 2, N) Jacobian or None. Returns (robust cost (B,),
+    weighted residuals (B, P), Jacobian (B, P, N) or None)."""
     obs = f.outline
+    B = u.shape[0]
     if len(obs) == 0:
-        return 0.0, np.zeros(0), (np.zeros((0, J.shape[-1])) if J is not None else None)
-    uv = np.stack([u, v], axis=1)
-    a = uv[chain.segments[:, 0]]
-    b = uv[chain.segments[:, 1]]
-    ab = b - a
-    den = np.maximum(np.einsum("kx,kx->k", ab, ab), 1e-9)
-    t = np.clip(np.einsum("pkx,kx->pk", obs[:, None, :] - a[None], ab) / den, 0.0, 1.0)
-    q = a[None] + t[..., None] * ab[None]
-    diff = obs[:, None, :] - q
-    d2 = np.einsum("pkx,pkx->pk", diff, diff)
-    k = np.argmin(d2, axis=1)
-    p = np.arange(len(obs))
-    d = np.sqrt(d2[p, k]) + 1e-9
-    rho, w = _robust(d, np.zeros(len(d), bool))
+        return np.zeros(B), np.zeros((B, 0)), (None if Juv is None else np.zeros((B, 0, Juv.shape[-1])))
+    s0, s1 = chain.segments[:, 0], chain.segments[:, 1]
+    ax, ay = u[:, s0], v[:, s0]                                         # (B, K)
+    bx, by = u[:, s1] - ax, v[:, s1] - ay
+    den = np.maximum(bx * bx + by * by, 1e-9)
+    rx = obs[None, :, 0, None] - ax[:, None, :]                         # (B, P, K)
+    ry = obs[None, :, 1, None] - ay[:, None, :]
+    t = np.clip((rx * bx[:, None] + ry * by[:, None]) / den[:, None], 0.0, 1.0)
+    dx = rx - t * bx[:, None]
+    dy = ry - t * by[:, None]
+    d2 = dx * dx + dy * dy
+    k = np.argmin(d2, axis=2)[..., None]                                # (B, P, 1)
+    d = np.sqrt(np.take_along_axis(d2, k, 2)[..., 0]) + 1e-9
+    rho, w = _huber(d)
     sw = np.sqrt(w)
-    if J is None:
-        return float(rho.sum()), sw * d, None
-    Juv = _pixel_jacobian(f.camera, x, y, z, J)                    # (corners, 2, N)
-    tk = t[p, k][:, None, None]
-    dq = (1 - tk) * Juv[chain.segments[k, 0]] + tk * Juv[chain.segments[k, 1]]
-    n = diff[p, k] / d[:, None]
-    g = -np.einsum("sa,sap->sp", n, dq)
-    return float(rho.sum()), sw * d, sw[:, None] * g
+    if Juv is None:
+        return rho.sum(axis=1), sw * d, None
+    k = k[..., 0]
+    tk = np.take_along_axis(t, k[..., None], 2)                          # (B, P, 1)
+    b = np.arange(B)[:, None]
+    dq = (1 - tk[..., None]) * Juv[b, s0[k]] + tk[..., None] * Juv[b, s1[k]]   # (B, P, 2, N)
+    nx = np.take_along_axis(dx, k[..., None], 2) / d[..., None]
+    ny = np.take_along_axis(dy, k[..., None], 2) / d[..., None]
+    g = -(nx * dq[:, :, 0] + ny * dq[:, :, 1])
+    return rho.sum(axis=1), sw * d, sw[..., None] * g
 
 
 def _residuals(chain: _Chain, fields: list[_Field], angles: np.ndarray, jacobian: bool):
-    """Weighted residuals, Jacobian (or None) and robust cost over all views."""
+    """Weighted residuals (B, R), Jacobian (B, R, 3n) or None, and robust cost (B,) of a
+    batch of (B, n, 3) angle sets over all views."""
     pts, J = chain.points(angles, jacobian)
     ns = chain.samples
-    rs, js, cost = [], [], 0.0
+    B = len(angles)
+    rs, js = [], []
+    cost = np.zeros(B)
+    centre = ~chain.edge
     for f in fields:
-        u_all, v_all, x_all, y_all, z_all = _project(f.camera, pts)
-        u, v, x, y, z = u_all[:ns], v_all[:ns], x_all[:ns], y_all[:ns], z_all[:ns]
-        c_cost, c_r, c_j = _coverage(chain, f, u_all[ns:], v_all[ns:], x_all[ns:], y_all[ns:], z_all[ns:],
-                                     J[ns:] if jacobian else None)
+        u, v, x, y, z = _project(f.camera, pts)
+        Juv = _pixel_jacobian(f.camera, x, y, z, J) if jacobian else None
+        c_cost, c_r, c_j = _coverage(chain, f, u[:, ns:], v[:, ns:], None if Juv is None else Juv[:, ns:])
         cost += c_cost
         rs.append(c_r)
-        if jacobian:
-            js.append(c_j)
-        sdf, gx, gy, ignored = _sample(f, u, v, jacobian)
-        inside_pt = ~chain.edge
-        r = np.where(inside_pt, np.maximum(sdf, 0.0), sdf)
+        sdf, gx, gy, ignored = _lookup(f, u[:, :ns], v[:, :ns])
+        r = np.where(centre, np.maximum(sdf, 0.0), sdf)
         rho, w = _robust(r, chain.edge & (sdf < 0))
         if ignored is not None:
             rho = np.where(ignored, 0.0, rho)
             w = np.where(ignored, 0.0, w)
-        cost += float(rho.sum())
+        cost += rho.sum(axis=1)
         sw = np.sqrt(w)
         rs.append(sw * r)
         if jacobian:
-            K = f.camera.K
-            inv_z = 1.0 / z
-            # d(u, v)/d(camera point), pinhole part (distortion is a small correction)
-            du = np.stack([K[0, 0] * inv_z, K[0, 1] * inv_z, -(K[0, 0] * x + K[0, 1] * y) * inv_z], axis=1)
-            dv = np.stack([np.zeros_like(z), K[1, 1] * inv_z, -K[1, 1] * y * inv_z], axis=1)
-            dsdf = (gx[:, None] * du + gy[:, None] * dv) @ f.camera.R          # (s, 3) world
-            g = np.einsum("sx,sxp->sp", dsdf, J[:ns])
-            g = np.where((inside_pt & (sdf <= 0))[:, None], 0.0, g)
-            js.append(sw[:, None] * g)
-    r = np.concatenate(rs)
-    return r, (np.concatenate(js) if jacobian else None), cost
+            js.append(c_j)
+            g = gx[..., None] * Juv[:, :ns, 0] + gy[..., None] * Juv[:, :ns, 1]     # (B, s, N)
+            sw = np.where(centre & (sdf <= 0), 0.0, sw)
+            js.append(sw[..., None] * g)
+    # A weak preference for small angles keeps the chain from drifting to extreme twists
+    # (self-crossing plates) where the silhouette barely constrains it.
+    prior = ANGLE_PRIOR_PX * angles.reshape(B, -1)
+    rs.append(prior)
+    cost += 0.5 * np.sum(prior * prior, axis=1)
+    r = np.concatenate(rs, axis=1)
+    if not jacobian:
+        return r, None, cost
+    js.append(np.broadcast_to(ANGLE_PRIOR_PX * np.eye(prior.shape[1]), (B,) + (prior.shape[1],) * 2))
+    return r, np.concatenate(js, axis=1), cost
 
 
 def _levenberg_marquardt(chain: _Chain, fields: list[_Field], angles: np.ndarray, iterations: int,
-                         on_iteration: Callable[[np.ndarray, float], None] | None = None):
-    """Robust (IRLS) Levenberg-Marquardt on all angles; returns (angles, robust cost)."""
+                         traces: list[list[np.ndarray]] | None = None):
+    """Robust (IRLS) Levenberg-Marquardt on all angles of a batch of (B, n, 3) starts at
+    once. Returns (angles (B, n, 3), robust cost (B,)); appends every candidate's
+    iterates to ``traces[b]``."""
+    angles = np.array(angles, float)
+    B = len(angles)
+    N = angles[0].size
+    diag = np.arange(N)
     r, J, cost = _residuals(chain, fields, angles, True)
-    mu = 1e-3
+    mu = np.full(B, 1e-3)
+    active = np.arange(B)
     for _ in range(iterations):
-        A = J.T @ J
-        g = J.T @ r
-        step = np.linalg.solve(A + mu * (np.diag(np.diag(A)) + 1e-6 * np.eye(len(A))), -g)
-        trial = angles + step.reshape(angles.shape)
-        r2, J2, cost2 = _residuals(chain, fields, trial, True)
-        if cost2 < cost:
-            angles, r, J, cost = trial, r2, J2, cost2
-            mu = max(mu * 0.3, 1e-7)
-            converged = np.max(np.abs(step)) < 1e-4
-        else:
-            mu *= 10.0
-            converged = mu > 1e4
-        if on_iteration is not None:
-            on_iteration(angles, cost)
-        if converged:
+        Ja, ra = J[active], r[active]
+        JT = Ja.transpose(0, 2, 1)
+        A = JT @ Ja
+        g = (JT @ ra[..., None])[..., 0]
+        damp = mu[active, None] * (A[:, diag, diag] + 1e-6)
+        A[:, diag, diag] += damp
+        step = np.linalg.solve(A, -g[..., None])[..., 0]
+        trial = angles[active] + step.reshape(-1, *angles.shape[1:])
+        r2, J2, c2 = _residuals(chain, fields, trial, True)
+        ok = c2 < cost[active]
+        acc = active[ok]
+        angles[acc], cost[acc] = trial[ok], c2[ok]
+        if r2.shape[1] == r.shape[1]:
+            r[acc], J[acc] = r2[ok], J2[ok]
+        mu[acc] = np.maximum(mu[acc] * 0.3, 1e-7)
+        mu[active[~ok]] *= 10.0
+        if traces is not None:
+            for b in active:
+                traces[b].append(angles[b].copy())
+        small = np.max(np.abs(step), axis=1) < 1e-4
+        done = (ok & small) | (mu[active] > 1e4)
+        active = active[~done]
+        if active.size == 0:
             break
     return angles, cost
 
@@ -446,7 +483,7 @@ def _beam_search(spec: TapeSpec, fields: list[_Field]) -> list[np.ndarray]:
         plate = np.zeros(pts.shape[:2])
         for f in fields:
             u, v, *_ = _project(f.camera, pts)
-            sdf, _, _, ignored = _sample(f, u, v, False)
+            sdf, _, _, ignored = _lookup(f, u, v)
             r = np.where(is_edge, sdf, np.maximum(sdf, 0.0))
             rho, _ = _robust(r, is_edge & (sdf < 0))
             if ignored is not None:
@@ -487,39 +524,31 @@ def _beam_search(spec: TapeSpec, fields: list[_Field]) -> list[np.ndarray]:
 # --------------------------------------------------------------------------- public
 
 def fit_default(capture: Capture, callback: Callback | None = None):
-    """Fit by the project's method; returns (angles, history, evaluations)."""
+    """Fit by the project's method; returns (angles, trace, evaluations) where trace holds
+    the winning candidate's angles after each local-stage iteration."""
     chain = _Chain(capture.tape)
     fields = [_prepare(v) for v in capture.views]
-    candidates = _beam_search(capture.tape, fields)
+    starts = np.array(_beam_search(capture.tape, fields))
+    traces: list[list[np.ndarray]] = [[] for _ in starts]
+    # A few iterations on every candidate at once, then the best few to convergence.
+    angles, cost = _levenberg_marquardt(chain, fields, starts, LM_SCREEN, traces)
+    keep = np.argsort(cost)[:REFINE]
+    sub_traces = [traces[k] for k in keep]
+    refined, _ = _levenberg_marquardt(chain, fields, angles[keep], LM_ITERATIONS, sub_traces)
     evaluator = CostEvaluator([f.target for f in fields])
-    best, best_cost = None, np.inf
-    history: list[float] = []
-    iteration = 0
-    # A few iterations on every candidate, then the best by silhouette cost to the end.
-    scored = []
-    for start in candidates:
-        trace: list[tuple[np.ndarray, float]] = []
-        angles, _ = _levenberg_marquardt(chain, fields, start, LM_SCREEN, lambda a, c: trace.append((a, c)))
-        scored.append((evaluator.cost(forward_kinematics(capture.tape, angles).quads()), angles, trace))
-    scored.sort(key=lambda x: x[0])
-    for _, start, trace in scored[:REFINE]:
-        angles, _ = _levenberg_marquardt(chain, fields, start, LM_ITERATIONS, lambda a, c: trace.append((a, c)))
-        cost = evaluator.cost(forward_kinematics(capture.tape, angles).quads())
-        if cost < best_cost:
-            best, best_cost, best_trace = angles, cost, trace
-    for a, c in best_trace:
-        iteration += 1
-        history.append(c)
-        if callback is not None:
-            callback(iteration, c, a)
-    return best, history, evaluator.evaluations
+    costs = [evaluator.cost(forward_kinematics(capture.tape, a).quads()) for a in refined]
+    best = int(np.argmin(costs))
+    return refined[best], sub_traces[best], evaluator.evaluations
 
 
 def estimate(capture: Capture, method: str = "default", callback: Callback | None = None) -> Estimate:
     """Fit the plate chain to ``capture``'s silhouettes.
 
     method: "default" (ours) or "paper" (the reference reproduction).
-    callback(iteration, cost, angles (n, 3)): called per optimiser iteration.
+    callback(iteration, cost, angles (n, 3)): called per optimiser iteration with the
+    silhouette cost (eq. 11) of that iterate; for the default method after the fit (the
+    winner's iterations, costed once the clock has stopped), for the paper's method live
+    (the objective of the node being optimised).
     Returns an :class:`Estimate`; ``time_s`` is the fitting time alone.
     """
     from .paper import fit_paper
@@ -529,11 +558,19 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     if not capture.views:
         raise EstimateError(f"{capture.name}: no camera views to fit")
     start = time.perf_counter()
-    fit = fit_default if method == "default" else fit_paper
-    angles, history, evaluations = fit(capture, callback)
+    if method == "default":
+        angles, trace, evaluations = fit_default(capture)
+    else:
+        angles, history, evaluations = fit_paper(capture, callback)
     shape = forward_kinematics(capture.tape, angles)
     full = CostEvaluator([make_target(v) for v in capture.views])
     view_costs = full.view_costs(shape.quads())
     elapsed = time.perf_counter() - start
+    if method == "default":
+        # The cost per iteration on the eq.-11 scale, for recordings and plots.
+        history = [full.cost(forward_kinematics(capture.tape, a).quads()) for a in trace]
+        if callback is not None:
+            for k, (a, c) in enumerate(zip(trace, history), 1):
+                callback(k, c, a)
     return Estimate(shape.nodes, angles, shape.nodes[-1].copy(), shape.frames[-1].copy(), combine(view_costs),
                     view_costs, elapsed, method, history, evaluations)
