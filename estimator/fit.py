@@ -55,6 +55,8 @@ REFINE = 2
 LM_SCREEN = 4
 """Levenberg-Marquardt iterations every beam candidate gets before screening."""
 LM_ITERATIONS = 10
+LM_RTOL = 3e-3
+"""A local-stage step that lowers the robust cost by less than this fraction ends it."""
 ANGLE_PRIOR = 0.05
 """Weight of a weak preference for small joint angles in the global stage."""
 ANGLE_PRIOR_PX = 1.0
@@ -63,6 +65,7 @@ ANGLE_PRIOR_PX = 1.0
 _EDGE_T = np.array([0.25, 0.5, 0.75, 1.0])
 _TIP_T = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
 _CENTRE_T = np.array([0.5, 1.0])
+_BEAM_EDGE_T = np.array([1 / 3, 2 / 3, 1.0])
 
 
 def _angle_grid() -> np.ndarray:
@@ -84,8 +87,8 @@ class _Field:
     """One view prepared for the boundary fit.
 
     camera: its calibration; x0, y0: ROI origin [px]; field: (h, w, 4) float32 of the
-    signed distance to the observed boundary [px] (negative inside), its x/y gradient and
-    1 where the pixel is ignored; has_ignore: whether the view has an ignore mask;
+    signed distance to the observed boundary [px] (negative inside), its x/y gradient and,
+    only with an ignore mask, 1 where the pixel is ignored (else (h, w, 3)); has_ignore: whether the view has an ignore mask;
     target: the cleaned mask as a :class:`ViewTarget` for the silhouette cost;
     outline: (P, 2) points on the observed outline [px, full image].
     """
@@ -99,37 +102,47 @@ class _Field:
     outline: np.ndarray
 
 
-def _clean_mask(mask: np.ndarray) -> np.ndarray:
-    """The mask without speckles (small isolated regions); uint8 0/1."""
-    m = mask.astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+def _drop_small(m: np.ndarray, connectivity: int) -> np.ndarray:
+    """uint8 0/1 ``m`` without its connected regions smaller than SPECKLE_PX (the largest
+    is always kept). Labels without stats: OpenCV's statistics pass costs ten times more."""
+    count, labels = cv2.connectedComponents(m, connectivity=connectivity)
     if count <= 2:
         return m
-    areas = stats[1:, cv2.CC_STAT_AREA]
+    areas = np.bincount(labels.ravel(), minlength=count)
     keep = np.zeros(count, np.uint8)
-    keep[1:] = areas >= min(SPECKLE_PX, areas.max())
+    keep[1:] = areas[1:] >= min(SPECKLE_PX, areas[1:].max())
     return keep[labels]
 
 
+def _clean_mask(mask: np.ndarray) -> np.ndarray:
+    """The mask without speckles (small isolated regions); uint8 0/1."""
+    return _drop_small(mask.view(np.uint8), 8)
+
+
 def _fill_pinholes(m: np.ndarray) -> np.ndarray:
+    """``m`` with small holes (background regions not touching much else) filled."""
     inv = (1 - m).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(inv, connectivity=4)
+    count, labels = cv2.connectedComponents(inv, connectivity=4)
+    if count <= 2:
+        return m
+    areas = np.bincount(labels.ravel(), minlength=count)
     small = np.zeros(count, bool)
-    small[1:] = stats[1:, cv2.CC_STAT_AREA] < SPECKLE_PX
+    small[1:] = areas[1:] < SPECKLE_PX
     out = m.copy()
     out[small[labels]] = 1
     return out
 
 
 def _tape_box(mask: np.ndarray) -> tuple[int, int, int, int]:
-    """Bounding box (x0, y0, x1, y1) of the tape, ignoring isolated speckles: found on a
-    4x area-downsampled copy where a lone pixel falls below the threshold."""
-    small = cv2.resize(mask.view(np.uint8) * np.uint8(255), None, fx=0.25, fy=0.25, interpolation=cv2.INTER_AREA)
-    x, y, w, h = cv2.boundingRect((small > 96).astype(np.uint8))
-    if w == 0:
-        x, y, w, h = cv2.boundingRect(mask.view(np.uint8))
+    """Bounding box (x0, y0, x1, y1) of the tape, ignoring isolated speckles: only rows and
+    columns holding at least 3 tape pixels count."""
+    m = mask.view(np.uint8)
+    cols = np.flatnonzero(cv2.reduce(m, 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S)[0] >= 3)
+    rows = np.flatnonzero(cv2.reduce(m, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S)[:, 0] >= 3)
+    if cols.size == 0 or rows.size == 0:
+        x, y, w, h = cv2.boundingRect(m)
         return x, y, x + w, y + h
-    return 4 * x, 4 * y, 4 * (x + w), 4 * (y + h)
+    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
 
 
 def _prepare(view: View) -> _Field:
@@ -144,11 +157,14 @@ def _prepare(view: View) -> _Field:
     solid = roi if ignore is None else (roi | ignore).astype(np.uint8)
     inside = cv2.distanceTransform(solid, cv2.DIST_L2, cv2.DIST_MASK_5)
     outside = cv2.distanceTransform(1 - solid, cv2.DIST_L2, cv2.DIST_MASK_5)
-    sdf = np.where(solid > 0, 0.5 - inside, outside - 0.5).astype(np.float32)
+    # 0.5 - inside on tape pixels, outside - 0.5 elsewhere: the boundary between pixels.
+    sdf = outside - inside
+    sdf += solid
+    sdf -= 0.5
     gx = cv2.Sobel(sdf, cv2.CV_32F, 1, 0, ksize=3, scale=0.125)
     gy = cv2.Sobel(sdf, cv2.CV_32F, 0, 1, ksize=3, scale=0.125)
-    ign = np.zeros_like(sdf) if ignore is None else ignore.astype(np.float32)
-    field = cv2.merge([sdf, gx, gy, ign])
+    channels = [sdf, gx, gy] if ignore is None else [sdf, gx, gy, ignore.astype(np.float32)]
+    field = cv2.merge(channels)
     valid = None if ignore is None else (~ignore).astype(np.uint8)
     observed = roi if valid is None else roi & valid
     target = ViewTarget(cam, x0, y0, np.ascontiguousarray(observed), valid,
@@ -196,7 +212,7 @@ def _lookup(field: _Field, u: np.ndarray, v: np.ndarray):
     mx[:n] = xc
     my[:n] = yc
     val = cv2.remap(field.field, mx.reshape(rows, width), my.reshape(rows, width), cv2.INTER_LINEAR,
-                    borderMode=cv2.BORDER_REPLICATE).reshape(-1, 4)[:n]
+                    borderMode=cv2.BORDER_REPLICATE).reshape(-1, field.field.shape[2])[:n]
     extra = np.abs(ox) + np.abs(oy)
     outside = extra > 0
     sdf = val[:, 0] + extra
@@ -434,6 +450,8 @@ def _levenberg_marquardt(chain: _Chain, fields: list[_Field], angles: np.ndarray
         trial = angles[active] + step.reshape(-1, *angles.shape[1:])
         r2, J2, c2 = _residuals(chain, fields, trial, True)
         ok = c2 < cost[active]
+        # Converged when a step gains less than RTOL of the cost (its noise floor).
+        flat = ok & (cost[active] - c2 < LM_RTOL * cost[active])
         acc = active[ok]
         angles[acc], cost[acc] = trial[ok], c2[ok]
         if r2.shape[1] == r.shape[1]:
@@ -444,7 +462,7 @@ def _levenberg_marquardt(chain: _Chain, fields: list[_Field], angles: np.ndarray
             for b in active:
                 traces[b].append(angles[b].copy())
         small = np.max(np.abs(step), axis=1) < 1e-4
-        done = (ok & small) | (mu[active] > 1e4)
+        done = (ok & small) | flat | (mu[active] > 1e4)
         active = active[~done]
         if active.size == 0:
             break
@@ -470,9 +488,9 @@ def _beam_search(spec: TapeSpec, fields: list[_Field]) -> list[np.ndarray]:
         R0 = (nodes - h * frames[:, :, 1])[:, None, None, :]
         L1 = (P + h * F[..., :, 1])[:, :, None, :]
         R1 = (P - h * F[..., :, 1])[:, :, None, :]
-        t = _EDGE_T[None, None, :, None]
+        t = _BEAM_EDGE_T[None, None, :, None]
         parts = [L0 + (L1 - L0) * t, R0 + (R1 - R0) * t]
-        edge_count = 2 * len(_EDGE_T)
+        edge_count = 2 * len(_BEAM_EDGE_T)
         if i == n - 1:
             parts.append(L1 + (R1 - L1) * _TIP_T[None, None, :, None])
             edge_count += len(_TIP_T)
@@ -508,15 +526,19 @@ def _beam_search(spec: TapeSpec, fields: list[_Field]) -> list[np.ndarray]:
     for f in fields:
         if len(f.outline) == 0:
             continue
-        u, v, *_ = _project(f.camera, corners)
-        uv = np.stack([u, v], axis=-1)
-        a, ab = uv[:, seg[:, 0]], uv[:, seg[:, 1]] - uv[:, seg[:, 0]]   # (c, S, 2)
-        den = np.maximum(np.sum(ab * ab, axis=-1), 1e-9)
-        rel = f.outline[None, :, None, :] - a[:, None]                    # (c, P, S, 2)
-        t = np.clip(np.sum(rel * ab[:, None], axis=-1) / den[:, None], 0.0, 1.0)
-        d = np.sqrt(np.min(np.sum((rel - t[..., None] * ab[:, None]) ** 2, axis=-1), axis=2))
-        rho, _ = _robust(d, np.zeros(d.shape, bool))
-        scores = scores + rho.sum(axis=1)
+        u, v, *_ = _project(f.camera, corners)                          # (c, 2m)
+        obs = f.outline[::2]
+        ax, ay = u[:, seg[:, 0]], v[:, seg[:, 0]]                       # (c, S)
+        bx, by = u[:, seg[:, 1]] - ax, v[:, seg[:, 1]] - ay
+        den = np.maximum(bx * bx + by * by, 1e-9)[:, None]
+        rx = obs[None, :, 0, None] - ax[:, None]                        # (c, P, S)
+        ry = obs[None, :, 1, None] - ay[:, None]
+        t = np.clip((rx * bx[:, None] + ry * by[:, None]) / den, 0.0, 1.0)
+        rx -= t * bx[:, None]
+        ry -= t * by[:, None]
+        d = np.sqrt(np.min(rx * rx + ry * ry, axis=2))
+        rho, _ = _huber(d)
+        scores = scores + 2.0 * rho.sum(axis=1)
     order = np.argsort(scores)[:BEAM]
     return [history[k] for k in order]
 
