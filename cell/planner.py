@@ -23,11 +23,12 @@ of the tape); linear ``approach`` to ``grasp`` (TCP ``inset`` in from the tip al
 trunk); close; lift by ``lift`` metres (TCP path length) in linear moves of at most 10 mm
 (``lift_1`` ... ``lift``). Two lift modes:
 
-* "arc" (default): the gripper swings the tape's free end about the line where it is
-  stuck (its base), turning the base-to-grasp chord towards the vertical, and turns with
-  it. The free length never has to stretch, so the tape follows the gripper as long as
-  its base holds: the first phase of every peel, and all a simulated tape with a welded
-  base allows.
+* "arc" (default): the gripper carries the grasped point on an arc about the line where
+  the tape is stuck (its base), turning the base-to-grasp chord towards the vertical; the
+  jaw keeps its orientation (the floppy tape bends at the grasp, and the wrist stays
+  still). The free length never has to stretch, so the tape follows the gripper as long
+  as its base holds: the first phase of every peel, and all a simulated tape with a
+  welded base allows.
 * "peel": a straight pull between the part's top normal (world z) and the chord from the
   base to the grasp, which drives the peel front along the adhesive line (real cell).
 
@@ -283,9 +284,8 @@ def lift_path(world_from_grasp: np.ndarray, tape_base: Any, lift: float, mode: s
         out = []
         for i in range(1, k + 1):
             R = _axis_angle(axis, (lift / radius) * i / k)
-            T = np.eye(4)
-            T[:3, :3] = R @ world_from_grasp[:3, :3]
-            T[:3, 3] = np.asarray(tape_base, float) + R @ chord
+            T = world_from_grasp.copy()    # the jaw keeps its orientation: a floppy tape
+            T[:3, 3] = np.asarray(tape_base, float) + R @ chord   # bends at the grasp instead
             out.append(T)
         return out
     d = up if chord is None or np.linalg.norm(chord) < 1e-6 else up + chord / np.linalg.norm(chord)
@@ -417,11 +417,11 @@ class Speeds:
     """joint [rad/s], joint_accel [rad/s^2] for the move to pre-grasp; linear [m/s] and
     linear_accel [m/s^2] for the approach and the lift (slow: contact and peeling)."""
 
-    joint: float = 0.8
-    joint_accel: float = 1.0
-    approach: float = 0.05
-    lift: float = 0.03
-    linear_accel: float = 0.5
+    joint: float = 1.0
+    joint_accel: float = 1.2
+    approach: float = 0.1
+    lift: float = 0.05
+    linear_accel: float = 0.8
 
 
 def execute_plan(plan: GraspPlan, arm: Arm, limits: SafetyLimits, speeds: Speeds = Speeds(),
