@@ -55,6 +55,11 @@ REFINE = 2
 LM_SCREEN = 4
 """Levenberg-Marquardt iterations every beam candidate gets before screening."""
 LM_ITERATIONS = 10
+SHIFTS = False
+"""Fit a 2-D image shift per view along with the angles (miscalibration). Off: measured
+worse (occluded views drift, unseen tip p90 1.5 -> 2.6 mm) and no help on calib-00/02."""
+SHIFT_PRIOR = 0.3
+"""Residual [px] per px of view shift (a weak prior)."""
 LM_RTOL = 3e-3
 """A local-stage step that lowers the robust cost by less than this fraction ends it."""
 ANGLE_PRIOR = 0.05
@@ -386,17 +391,25 @@ def _coverage(chain: _Chain, f: _Field, u, v, Juv):
     return rho.sum(axis=1), sw * d, sw[..., None] * g
 
 
-def _residuals(chain: _Chain, fields: list[_Field], angles: np.ndarray, jacobian: bool):
-    """Weighted residuals (B, R), Jacobian (B, R, 3n) or None, and robust cost (B,) of a
-    batch of (B, n, 3) angle sets over all views."""
+def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian: bool):
+    """Weighted residuals (B, R), Jacobian (B, R, P) or None, and robust cost (B,) of a
+    batch of parameter vectors (B, P): the 3n joint angles, then, when P = 3n + 2V, a 2-D
+    image shift (du, dv) [px] per view, nuisance parameters that absorb a slightly wrong
+    calibration (the fixed base anchors the chain, so a shift cannot fake a shape)."""
+    B = len(params)
+    na = 3 * chain.n
+    angles = params[:, :na].reshape(B, chain.n, 3)
+    shifts = params[:, na:].reshape(B, -1, 2) if params.shape[1] > na else None
     pts, J = chain.points(angles, jacobian)
     ns = chain.samples
-    B = len(angles)
     rs, js = [], []
     cost = np.zeros(B)
     centre = ~chain.edge
-    for f in fields:
+    for k, f in enumerate(fields):
         u, v, x, y, z = _project(f.camera, pts)
+        if shifts is not None:
+            u = u + shifts[:, k, 0, None]
+            v = v + shifts[:, k, 1, None]
         Juv = _pixel_jacobian(f.camera, x, y, z, J) if jacobian else None
         c_cost, c_r, c_j = _coverage(chain, f, u[:, ns:], v[:, ns:], None if Juv is None else Juv[:, ns:])
         cost += c_cost
@@ -411,32 +424,54 @@ def _residuals(chain: _Chain, fields: list[_Field], angles: np.ndarray, jacobian
         sw = np.sqrt(w)
         rs.append(sw * r)
         if jacobian:
-            js.append(c_j)
-            g = gx[..., None] * Juv[:, :ns, 0] + gy[..., None] * Juv[:, :ns, 1]     # (B, s, N)
             sw = np.where(centre & (sdf <= 0), 0.0, sw)
-            js.append(sw[..., None] * g)
+            g = gx[..., None] * Juv[:, :ns, 0] + gy[..., None] * Juv[:, :ns, 1]     # (B, s, 3n)
+            if shifts is None:
+                js += [c_j, sw[..., None] * g]
+                continue
+            # d(residual)/d(this view's shift), zero for the other views' shifts
+            cs = _coverage_shift_jacobian(chain, f, u[:, ns:], v[:, ns:])
+            gs = np.stack([gx, gy], axis=-1) * sw[..., None]
+            blocks = []
+            for kk in range(len(fields)):
+                blocks.append((cs, gs) if kk == k else (np.zeros(cs.shape), np.zeros(gs.shape)))
+            js.append(np.concatenate([c_j] + [b[0] for b in blocks], axis=2))
+            js.append(np.concatenate([sw[..., None] * g] + [b[1] for b in blocks], axis=2))
     # A weak preference for small angles keeps the chain from drifting to extreme twists
-    # (self-crossing plates) where the silhouette barely constrains it.
-    prior = ANGLE_PRIOR_PX * angles.reshape(B, -1)
+    # (self-crossing plates) where the silhouette barely constrains it; shifts are kept
+    # small in the same way.
+    weights = np.full(params.shape[1], ANGLE_PRIOR_PX)
+    weights[na:] = SHIFT_PRIOR
+    prior = weights * params
     rs.append(prior)
     cost += 0.5 * np.sum(prior * prior, axis=1)
     r = np.concatenate(rs, axis=1)
     if not jacobian:
         return r, None, cost
-    js.append(np.broadcast_to(ANGLE_PRIOR_PX * np.eye(prior.shape[1]), (B,) + (prior.shape[1],) * 2))
+    js.append(np.broadcast_to(np.diag(weights), (B,) + (params.shape[1],) * 2))
     return r, np.concatenate(js, axis=1), cost
 
 
-def _levenberg_marquardt(chain: _Chain, fields: list[_Field], angles: np.ndarray, iterations: int,
+def _coverage_shift_jacobian(chain: _Chain, f: _Field, u, v) -> np.ndarray:
+    """(B, P, 2) d(coverage residual)/d(view shift): moving the whole model outline by
+    (du, dv) changes each outline point's distance by -n . (du, dv)."""
+    ones = np.zeros(u.shape + (2, 2))
+    ones[..., 0, 0] = 1.0
+    ones[..., 1, 1] = 1.0
+    _, _, j = _coverage(chain, f, u, v, ones)
+    return j
+
+
+def _levenberg_marquardt(chain: _Chain, fields: list[_Field], params: np.ndarray, iterations: int,
                          traces: list[list[np.ndarray]] | None = None):
-    """Robust (IRLS) Levenberg-Marquardt on all angles of a batch of (B, n, 3) starts at
-    once. Returns (angles (B, n, 3), robust cost (B,)); appends every candidate's
-    iterates to ``traces[b]``."""
-    angles = np.array(angles, float)
-    B = len(angles)
-    N = angles[0].size
+    """Robust (IRLS) Levenberg-Marquardt on a batch of (B, P) parameter vectors (see
+    :func:`_residuals`) at once. Returns (params (B, P), robust cost (B,)); appends every
+    candidate's iterated angles (n, 3) to ``traces[b]``."""
+    params = np.array(params, float)
+    B, N = params.shape
+    na = 3 * chain.n
     diag = np.arange(N)
-    r, J, cost = _residuals(chain, fields, angles, True)
+    r, J, cost = _residuals(chain, fields, params, True)
     mu = np.full(B, 1e-3)
     active = np.arange(B)
     for _ in range(iterations):
@@ -447,26 +482,25 @@ def _levenberg_marquardt(chain: _Chain, fields: list[_Field], angles: np.ndarray
         damp = mu[active, None] * (A[:, diag, diag] + 1e-6)
         A[:, diag, diag] += damp
         step = np.linalg.solve(A, -g[..., None])[..., 0]
-        trial = angles[active] + step.reshape(-1, *angles.shape[1:])
+        trial = params[active] + step
         r2, J2, c2 = _residuals(chain, fields, trial, True)
         ok = c2 < cost[active]
         # Converged when a step gains less than RTOL of the cost (its noise floor).
         flat = ok & (cost[active] - c2 < LM_RTOL * cost[active])
         acc = active[ok]
-        angles[acc], cost[acc] = trial[ok], c2[ok]
-        if r2.shape[1] == r.shape[1]:
-            r[acc], J[acc] = r2[ok], J2[ok]
+        params[acc], cost[acc] = trial[ok], c2[ok]
+        r[acc], J[acc] = r2[ok], J2[ok]
         mu[acc] = np.maximum(mu[acc] * 0.3, 1e-7)
         mu[active[~ok]] *= 10.0
         if traces is not None:
             for b in active:
-                traces[b].append(angles[b].copy())
-        small = np.max(np.abs(step), axis=1) < 1e-4
+                traces[b].append(params[b, :na].reshape(chain.n, 3).copy())
+        small = np.max(np.abs(step[:, :na]), axis=1) < 1e-4
         done = (ok & small) | flat | (mu[active] > 1e4)
         active = active[~done]
         if active.size == 0:
             break
-    return angles, cost
+    return params, cost
 
 
 # --------------------------------------------------------------------------- global stage
@@ -553,10 +587,14 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     starts = np.array(_beam_search(capture.tape, fields))
     traces: list[list[np.ndarray]] = [[] for _ in starts]
     # A few iterations on every candidate at once, then the best few to convergence.
-    angles, cost = _levenberg_marquardt(chain, fields, starts, LM_SCREEN, traces)
+    params = starts.reshape(len(starts), -1)
+    if SHIFTS:
+        params = np.concatenate([params, np.zeros((len(params), 2 * len(fields)))], axis=1)
+    params, cost = _levenberg_marquardt(chain, fields, params, LM_SCREEN, traces)
     keep = np.argsort(cost)[:REFINE]
     sub_traces = [traces[k] for k in keep]
-    refined, _ = _levenberg_marquardt(chain, fields, angles[keep], LM_ITERATIONS, sub_traces)
+    params, _ = _levenberg_marquardt(chain, fields, params[keep], LM_ITERATIONS, sub_traces)
+    refined = params[:, :3 * chain.n].reshape(-1, chain.n, 3)
     evaluator = CostEvaluator([f.target for f in fields])
     costs = [evaluator.cost(forward_kinematics(capture.tape, a).quads()) for a in refined]
     best = int(np.argmin(costs))
