@@ -79,6 +79,9 @@ def test_callback_sees_every_iteration():
     assert [s[0] for s in seen] == list(range(1, len(seen) + 1))
     assert all(s[2] == (5, 3) for s in seen)
     assert [s[1] for s in seen] == est.history
+    # the history is the silhouette cost (eq. 11) of each iterate, ending at the result's
+    assert est.history[-1] == pytest.approx(est.cost)
+    assert est.history[0] >= est.history[-1]
 
 
 def test_paper_method_runs_and_returns_valid_estimate():
