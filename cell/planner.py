@@ -14,9 +14,9 @@ tape's width, centred on its centre line) end up a few mm in from the end. A sid
 (along the width) would reach only the 12 mm pad depth into a 30 mm wide tape; an approach
 along the normal is impossible, a finger would have to pass through the tape. When the
 straight approach is blocked (the tip points down, the part is in the way, or the arm
-cannot reach it) the approach is tilted about the normal by up to 40 deg, and the jaw may
-be turned half a turn about its own axis (the gripper is symmetric); the least tilted
-feasible variant wins.
+cannot reach it) the approach is tilted about the normal, up to 90 deg (from the side,
+across the width), and the jaw may be turned half a turn about its own axis (the gripper
+is symmetric); the least tilted feasible variant wins.
 
 Plan: open; joint move to ``pregrasp`` (``pregrasp_distance`` back along the approach, clear
 of the tape); linear ``approach`` to ``grasp`` (TCP ``inset`` in from the tip along the
@@ -58,7 +58,11 @@ IK = Callable[[np.ndarray, np.ndarray], "np.ndarray | None"]
 # Joints of the UR5e reaching over the part from above (elbow up, wrist down): the branch
 # the planner prefers when the caller does not say where the arm is.
 REFERENCE_JOINTS = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])
-APPROACH_TILTS_RAD = (0.0, np.radians(20.0), -np.radians(20.0), np.radians(40.0), -np.radians(40.0))
+# Tilts of the approach about the tape normal, least first: 0 slides the jaw onto the end
+# along -trunk; +-90 deg comes in from the side, across the width (the pads still grip a
+# 12 x 12 mm patch on the centre line; the near half of the width passes between the
+# fingers), which is how a tip that hangs down is reached without coming from below.
+APPROACH_TILTS_RAD = tuple(np.radians(a) for a in (0.0, 20.0, -20.0, 40.0, -40.0, 60.0, -60.0, 90.0, -90.0))
 MAX_JOINT_STEP_RAD = 0.25      # per ~5 mm of a straight segment: more means a singularity or a flip
 PATH_STEP_M = 0.005
 

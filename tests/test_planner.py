@@ -57,8 +57,8 @@ def test_grasp_geometry_pads_straddle_the_normal_inset_from_the_tip():
         assert sides[0] * sides[1] < 0
         # TCP on the tape's centre line, `inset` in from the tip.
         np.testing.assert_allclose(grasp[:3, 3], tip.position - PARAMS.inset * tip.trunk, atol=1e-12)
-        # Approaching towards the base, within the tilt range, never along the normal.
-        assert z @ -tip.trunk >= np.cos(np.radians(40)) - 1e-9
+        # Approaching within the tilt range (up to 90 deg about the normal), never along the normal.
+        assert z @ -tip.trunk >= -1e-9      # from beyond the tip or from the side, never from the base
         assert abs(z @ tip.normal) < 1e-9
         # The flange pose is the TCP pose composed with the tool offset.
         w = plan.waypoint("grasp")
@@ -81,6 +81,18 @@ def test_grasp_geometry_pads_straddle_the_normal_inset_from_the_tip():
         assert [s.waypoint for s in plan.steps[4:]] == [w.name for w in plan.waypoints[2:]]
         assert plan.steps[-1].waypoint == "lift"
     assert planned >= 20
+
+
+def test_a_hanging_tip_is_taken_from_the_side_not_from_below():
+    angles = np.zeros((5, 3))
+    angles[1:3, 1] = -np.pi / 4      # over to horizontal (towards +x) ...
+    angles[4, 1] = -np.pi / 2        # ... and hanging down at the end
+    tip, nodes = tape(angles)
+    assert tip.trunk[2] < -0.99
+    plan = plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes)
+    approach = plan.waypoint("grasp").world_from_tcp[:3, 2]
+    assert abs(np.degrees(plan.approach_tilt_rad)) > 45 and approach[2] < 0.5
+    assert abs(abs(plan.waypoint("grasp").world_from_tcp[:3, 1] @ tip.normal) - 1) < 1e-9
 
 
 def test_peel_mode_pulls_straight_up_and_away():
@@ -119,7 +131,7 @@ def test_refuses_an_unreachable_tip():
 
 def test_refuses_outside_the_workspace():
     tip, nodes = tape(np.zeros(15))
-    low = SafetyLimits(LIMITS.workspace_min, [0.6, 0.9, 0.30], 0.25, 1.2, 1.0, LIMITS.keepout_min,
+    low = SafetyLimits(LIMITS.workspace_min, [0.6, 0.9, 0.20], 0.25, 1.2, 1.0, LIMITS.keepout_min,
                        LIMITS.keepout_max)
     with pytest.raises(PlanRefused) as e:
         plan_grasp(tip, PARAMS, GRIPPER, low)
@@ -139,10 +151,11 @@ def test_refuses_an_approach_through_the_part():
 
 
 def test_refuses_when_the_fingers_would_hit_the_tape():
-    # A tape curled back on itself: its middle lies right where the open jaw comes in.
+    # A tape curled back on itself: a layer lies right where the open jaw comes in.
     tip, nodes = tape(np.zeros(15))
-    # A sheet 20.5 mm off the tape's face, beyond the tip: where a finger slides in.
-    a, b = np.meshgrid(np.linspace(0.0, 0.06, 13), np.linspace(-0.02, 0.02, 9))
+    # A sheet 20.5 mm off the tape's face all around the tip: where a finger slides in,
+    # whichever way the jaw comes.
+    a, b = np.meshgrid(np.linspace(-0.06, 0.06, 25), np.linspace(-0.06, 0.06, 25))
     w = tip.rotation[:, 1]
     sheet = (tip.position + a.reshape(-1, 1) * tip.trunk + b.reshape(-1, 1) * w + 0.0205 * tip.normal)
     with pytest.raises(PlanRefused) as e:
