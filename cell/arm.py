@@ -84,7 +84,10 @@ class Arm(ABC):
     def __exit__(self, exc_type, exc, tb) -> None:
         try:
             if exc_type is not None and self.is_connected:
-                self._stop()
+                try:
+                    self._stop()
+                except (TapecellError, RuntimeError):
+                    pass   # keep the error that ended the block; it says more
         finally:
             self.disconnect()
 

@@ -244,13 +244,16 @@ class URArm(Arm):
 
     def _run(self, move: Callable[[], bool], stop: Callable[[], None], what: str) -> None:
         """Run a blocking move; on any exception, interrupt or failure, stop the arm."""
-        ok = False
         try:
             ok = bool(move())
-        finally:
-            if not ok:
+        except BaseException:
+            try:
                 stop()
+            except RuntimeError:
+                pass   # the link is gone: the move's own error is what the caller needs
+            raise
         if not ok:
+            stop()
             if self._receive.isProtectiveStopped():
                 raise ProtectiveStopError(f"{self.name} went into a protective stop during {what}")
             raise ArmError(f"{self.name}: {what} failed (the controller rejected or aborted it)")
