@@ -40,15 +40,15 @@ singularity / changes configuration), "limits" (workspace box or speeds), "colli
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
 from estimator.errors import TapecellError
 
-from .arm import Arm, ArmError
+from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import ik_nearest
-from .poses import as_transform, interpolate_pose6, invert, matrix_to_pose6, pose6_to_matrix
+from .poses import interpolate_pose6, invert, matrix_to_pose6, pose6_to_matrix
 from .safety import (SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
                      check_points_flange)
 
@@ -443,7 +443,6 @@ def execute_plan(plan: GraspPlan, arm: Arm, limits: SafetyLimits, speeds: Speeds
         for step in plan.steps:
             _run_step(safe, plan, step, speeds)
             if safe.is_protective_stopped():
-                from .arm import ProtectiveStopError
                 raise ProtectiveStopError(f"{arm.name} is in a protective stop after {step.action}")
             done.append(step)
             if on_step is not None:

@@ -8,7 +8,6 @@ import pytest
 
 from cell.fake_arm import FakeArm
 from cell.kinematics import fk
-from cell.poses import matrix_to_pose6
 from cell.safety import (SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
                          check_points_flange, segment_hits_box)
 
