@@ -95,6 +95,24 @@ def _percentiles(values: list[float]) -> str:
             f"max {v.max():.2f}")
 
 
+STAGE_OF_REASON = {"estimate rejected": "estimator", "unreachable": "planner", "limits": "planner",
+                   "collision": "planner", "missed": "execution", "slipped": "execution",
+                   "short lift": "execution", "arm error": "execution"}
+BLAME_TIP_ERROR_MM = 4.0
+"""A failed grasp whose estimate was off by more than this is blamed on the estimator."""
+
+
+def blame(result: dict[str, Any]) -> str | None:
+    """The stage a failed episode is blamed on: "estimator", "planner", "execution" or "error"."""
+    if result.get("success"):
+        return None
+    tip = result.get("tip_error_mm")
+    if tip is not None and tip > BLAME_TIP_ERROR_MM and result.get("failure") in ("missed", "slipped", "unreachable",
+                                                                               "collision", "limits"):
+        return "estimator"
+    return STAGE_OF_REASON.get(result.get("failure") or "", "error")
+
+
 def summarize(results: list[dict[str, Any]], wall_s: float | None = None) -> str:
     """Success rate with a 95 % interval, failure reasons, error percentiles, timings."""
     n = len(results)
@@ -105,6 +123,9 @@ def summarize(results: list[dict[str, Any]], wall_s: float | None = None) -> str
     reasons = Counter(r.get("failure") or "?" for r in results if not r.get("success"))
     if reasons:
         lines.append("failures: " + ", ".join(f"{k} x{v}" for k, v in reasons.most_common()))
+        stages = Counter(blame(r) for r in results if not r.get("success"))
+        lines.append("blamed on: " + ", ".join(f"{k} x{v}" for k, v in stages.most_common())
+                     + f"  (estimator: tip error > {BLAME_TIP_ERROR_MM:g} mm or estimate rejected)")
     tip = [r["tip_error_mm"] for r in results if r.get("tip_error_mm") is not None]
     nrm = [r["normal_error_deg"] for r in results if r.get("normal_error_deg") is not None]
     lines.append(f"tip error mm:     {_percentiles(tip)}")

@@ -113,3 +113,13 @@ def test_results_file_lines_are_whole_json(tmp_path):
 def test_wilson_interval(k, n, lo, hi):
     a, b = wilson_interval(k, n)
     assert a == pytest.approx(lo, abs=2e-3) and b == pytest.approx(hi, abs=2e-3)
+
+
+def test_failures_are_blamed_on_a_stage():
+    from cell.episodes import blame
+    assert blame({"success": True}) is None
+    assert blame({"success": False, "failure": "estimate rejected", "tip_error_mm": 0.5}) == "estimator"
+    assert blame({"success": False, "failure": "missed", "tip_error_mm": 9.0}) == "estimator"
+    assert blame({"success": False, "failure": "missed", "tip_error_mm": 0.9}) == "execution"
+    assert blame({"success": False, "failure": "unreachable", "tip_error_mm": 0.9}) == "planner"
+    assert blame({"success": False, "failure": "crash"}) == "error"
