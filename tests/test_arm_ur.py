@@ -6,7 +6,6 @@ import struct
 import sys
 import threading
 import time
-import types
 
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ from cell.kinematics import fk
 from cell.poses import matrix_to_pose6
 from cell.safety import SafetyError, SafetyLimits
 from cell.ur import URArm, probe_rtde
+from fakes import FakeRobot, install_fake_rtde
 
 Q_START = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])   # flange near (-0.13, 0.34, 0.35)
 LIMITS = SafetyLimits(workspace_min=[-0.30, 0.10, 0.05], workspace_max=[0.60, 0.90, 0.70],
@@ -76,108 +76,9 @@ def silent_server():
 
 
 # ---------------------------------------------------------------- fake ur_rtde modules
-class Robot:
-    """Shared state of the fake controller and a log of every call across the interfaces."""
-
-    def __init__(self) -> None:
-        self.log: list[tuple] = []
-        self.q = Q_START.copy()
-        self.protective = False
-        self.connected = True
-        self.move_result = True
-        self.move_raises: Exception | None = None
-        self.pose_ok = True
-        self.construct_failures = 0
-
-
-def install_fake_rtde(monkeypatch, robot: Robot) -> None:
-    def record(name):
-        def method(self, *args):
-            robot.log.append((name, *args))
-            return True
-        return method
-
-    class Control:
-        def __init__(self, host):
-            if robot.construct_failures > 0:
-                robot.construct_failures -= 1
-                raise RuntimeError("fake: connection failed")
-            robot.log.append(("RTDEControlInterface", host))
-
-        setTcp = record("setTcp")
-        servoStop = record("servoStop")
-        speedStop = record("speedStop")
-        stopL = record("stopL")
-        stopJ = record("stopJ")
-        teachMode = record("teachMode")
-        endTeachMode = record("endTeachMode")
-        disconnect = record("control.disconnect")
-
-        def isConnected(self):
-            return robot.connected
-
-        def reconnect(self):
-            robot.log.append(("control.reconnect",))
-            robot.connected = True
-            return True
-
-        def isPoseWithinSafetyLimits(self, pose):
-            robot.log.append(("isPoseWithinSafetyLimits", pose))
-            return robot.pose_ok
-
-        def isJointsWithinSafetyLimits(self, q):
-            robot.log.append(("isJointsWithinSafetyLimits", q))
-            return True
-
-        def moveL(self, pose, speed, acceleration):
-            robot.log.append(("moveL", pose, speed, acceleration))
-            if robot.move_raises:
-                raise robot.move_raises
-            return robot.move_result
-
-        def moveJ(self, q, speed, acceleration):
-            robot.log.append(("moveJ", q, speed, acceleration))
-            if robot.move_result:
-                robot.q = np.array(q)
-            return robot.move_result
-
-    class Receive:
-        def __init__(self, host):
-            robot.log.append(("RTDEReceiveInterface", host))
-
-        def isConnected(self):
-            return True
-
-        def getActualTCPPose(self):
-            return matrix_to_pose6(fk(robot.q)).tolist()
-
-        def getActualQ(self):
-            return robot.q.tolist()
-
-        def isProtectiveStopped(self):
-            return robot.protective
-
-        disconnect = record("receive.disconnect")
-
-    class IO:
-        def __init__(self, host):
-            robot.log.append(("RTDEIOInterface", host))
-
-        setStandardDigitalOut = record("setStandardDigitalOut")
-        setToolDigitalOut = record("setToolDigitalOut")
-        disconnect = record("io.disconnect")
-
-    for name, attr, cls in (("rtde_control", "RTDEControlInterface", Control),
-                            ("rtde_receive", "RTDEReceiveInterface", Receive),
-                            ("rtde_io", "RTDEIOInterface", IO)):
-        module = types.ModuleType(name)
-        setattr(module, attr, cls)
-        monkeypatch.setitem(sys.modules, name, module)
-
-
 @pytest.fixture
 def robot(monkeypatch):
-    r = Robot()
+    r = FakeRobot(Q_START)
     install_fake_rtde(monkeypatch, r)
     return r
 
@@ -188,7 +89,7 @@ def make_arm(port: int, **kw) -> URArm:
     return URArm("127.0.0.1", port, LIMITS, **kw)
 
 
-def motion_calls(robot: Robot) -> list[tuple]:
+def motion_calls(robot: FakeRobot) -> list[tuple]:
     keep = {"servoStop", "speedStop", "moveL", "moveJ", "stopL", "stopJ", "isPoseWithinSafetyLimits",
             "isJointsWithinSafetyLimits"}
     return [c for c in robot.log if c[0] in keep]

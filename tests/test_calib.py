@@ -1,9 +1,6 @@
 """Calibration: DLT + refinement on synthetic points, pose planning, the calibrate command
 on the simulated cell against the true cameras, bad input, and the real-cell path."""
 import dataclasses
-import json
-import sys
-import types
 
 import numpy as np
 import pytest
@@ -14,6 +11,7 @@ from cell.cli import main
 from cell.cross import CrossDetection
 from estimator.capture import load_cameras
 from estimator.geometry import Camera, rot_x, rot_z
+from fakes import FakeRobot, install_fake_rtde
 from sim.config import load_cell_config
 
 K = np.array([[1371.0, 0, 319.5], [0, 1371.0, 239.5], [0, 0, 1]])
@@ -158,19 +156,9 @@ def test_bad_cell_file_writes_nothing(tmp_path, capsys):
 # --------------------------------------------------------------------- the real cell, mocked
 @pytest.fixture
 def fake_rtde(monkeypatch):
-    made = []
-
-    class Control:
-        def __init__(self, *a, **k):
-            made.append(("RTDEControlInterface", a))
-
-    class Receive:
-        def __init__(self, *a, **k):
-            made.append(("RTDEReceiveInterface", a))
-
-    monkeypatch.setitem(sys.modules, "rtde_control", types.SimpleNamespace(RTDEControlInterface=Control))
-    monkeypatch.setitem(sys.modules, "rtde_receive", types.SimpleNamespace(RTDEReceiveInterface=Receive))
-    return made
+    robot = FakeRobot(load_cell_config().arm.home_joints)
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    return robot.log
 
 
 def test_real_calibrate_without_execute_only_plans(tmp_path, capsys, fake_rtde):
@@ -184,69 +172,10 @@ def test_real_calibrate_without_execute_only_plans(tmp_path, capsys, fake_rtde):
 
 @pytest.fixture
 def fake_ur(monkeypatch):
-    """Fake ur_rtde modules: a controller that goes where moveJ sends it, logging every call."""
-    from cell.kinematics import fk
-    from cell.poses import matrix_to_pose6
-
-    state = {"q": np.array(load_cell_config().arm.home_joints, float), "log": []}
-    log = state["log"]
-
-    def record(name):
-        def method(self, *args):
-            log.append((name, *args))
-            return True
-        return method
-
-    class Control:
-        def __init__(self, host):
-            log.append(("RTDEControlInterface", host))
-        setTcp = record("setTcp")
-        servoStop = record("servoStop")
-        speedStop = record("speedStop")
-        stopJ = record("stopJ")
-        stopL = record("stopL")
-        isJointsWithinSafetyLimits = record("isJointsWithinSafetyLimits")
-        disconnect = record("control.disconnect")
-
-        def isConnected(self):
-            return True
-
-        def moveJ(self, q, speed, acceleration):
-            log.append(("moveJ", list(q), speed, acceleration))
-            state["q"] = np.array(q)
-            return True
-
-    class Receive:
-        def __init__(self, host):
-            log.append(("RTDEReceiveInterface", host))
-
-        def isConnected(self):
-            return True
-
-        def getActualTCPPose(self):
-            return matrix_to_pose6(fk(state["q"])).tolist()
-
-        def getActualQ(self):
-            return state["q"].tolist()
-
-        def isProtectiveStopped(self):
-            return False
-        disconnect = record("receive.disconnect")
-
-    class IO:
-        def __init__(self, host):
-            log.append(("RTDEIOInterface", host))
-        disconnect = record("io.disconnect")
-
-    for name, attr, cls in (("rtde_control", "RTDEControlInterface", Control),
-                            ("rtde_receive", "RTDEReceiveInterface", Receive),
-                            ("rtde_io", "RTDEIOInterface", IO)):
-        mod = types.ModuleType(name)
-        setattr(mod, attr, cls)
-        monkeypatch.setitem(sys.modules, name, mod)
-    import cell.ur
-    monkeypatch.setattr(cell.ur, "probe_rtde", lambda *a, **k: None)
-    return state
+    """Fake ur_rtde: a controller that goes where moveJ sends it, logging every call."""
+    robot = FakeRobot(load_cell_config().arm.home_joints)
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    return robot
 
 
 def test_real_calibrate_execute_moves_exactly_the_plan(tmp_path, fake_ur):
@@ -272,11 +201,11 @@ def test_real_calibrate_execute_moves_exactly_the_plan(tmp_path, fake_ur):
     out = tmp_path / "cams.json"
     rc = main(["calibrate", "--config", cell.source, "--out", str(out), "--execute", "--images", str(images)])
     assert rc == 0
-    moves = [c for c in fake_ur["log"] if c[0] == "moveJ"]
+    moves = [c for c in fake_ur.log if c[0] == "moveJ"]
     assert len(moves) == len(poses) + 1           # the approach to the first pose, then every pose
     for call, p in zip(moves[1:], poses):
         assert np.allclose(call[1], p.joints) and call[2:] == (0.3, 0.5)
-    assert ("setTcp", [0.0] * 6) in fake_ur["log"]
+    assert ("setTcp", [0.0] * 6) in fake_ur.log
     for c in load_cameras(out):
         e = camera_errors(c, truth[c.name])
         assert e["centre_m"] < 1e-3 and e["rotation_deg"] < 0.05

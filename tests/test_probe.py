@@ -1,15 +1,14 @@
 """Probing: needle contact in simulation, and the real cell's freedrive path with ur_rtde faked."""
 import json
-import sys
-import types
 
 import numpy as np
 import pytest
 
 from cell.cli import main
 from cell.kinematics import fk
-from cell.poses import matrix_to_pose6, pose6_to_matrix
+from cell.poses import pose6_to_matrix
 from cell.probe import PROBE_LABELS, ProbeError, guided_probe
+from fakes import FakeRobot, install_fake_rtde
 from sim.config import load_cell_config
 
 
@@ -32,70 +31,9 @@ Q = np.array([1.2, -1.7, 1.9, -1.6, -1.5708, 0.3])
 
 @pytest.fixture
 def rtde_log(monkeypatch):
-    log = []
-
-    def record(name, result=True):
-        def method(self, *args):
-            log.append((name, *args))
-            return result
-        return method
-
-    class Control:
-        def __init__(self, host):
-            log.append(("RTDEControlInterface", host))
-        setTcp = record("setTcp")
-        teachMode = record("teachMode")
-        endTeachMode = record("endTeachMode")
-        stopJ = record("stopJ")
-        stopL = record("stopL")
-        servoStop = record("servoStop")
-        speedStop = record("speedStop")
-        disconnect = record("control.disconnect")
-
-        def isConnected(self):
-            return True
-
-        def moveL(self, *a):
-            log.append(("moveL", *a))
-            return True
-
-        def moveJ(self, *a):
-            log.append(("moveJ", *a))
-            return True
-
-    class Receive:
-        def __init__(self, host):
-            log.append(("RTDEReceiveInterface", host))
-
-        def isConnected(self):
-            return True
-
-        def getActualTCPPose(self):
-            log.append(("getActualTCPPose",))
-            return matrix_to_pose6(fk(Q)).tolist()
-
-        def getActualQ(self):
-            return Q.tolist()
-
-        def isProtectiveStopped(self):
-            return False
-
-        disconnect = record("receive.disconnect")
-
-    class IO:
-        def __init__(self, host):
-            log.append(("RTDEIOInterface", host))
-        disconnect = record("io.disconnect")
-
-    for name, attr, cls in (("rtde_control", "RTDEControlInterface", Control),
-                            ("rtde_receive", "RTDEReceiveInterface", Receive),
-                            ("rtde_io", "RTDEIOInterface", IO)):
-        mod = types.ModuleType(name)
-        setattr(mod, attr, cls)
-        monkeypatch.setitem(sys.modules, name, mod)
-    import cell.ur
-    monkeypatch.setattr(cell.ur, "probe_rtde", lambda *a, **k: None)   # no socket to a real controller
-    return log
+    robot = FakeRobot(Q, log_reads=True)
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    return robot.log
 
 
 @pytest.fixture
