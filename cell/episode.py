@@ -151,6 +151,8 @@ def _execute_and_check(cell, sim_arm, plan, limits, stream) -> EpisodeOutcome:
             state["tip_before"] = cell.tape_tip_position()
             state["tcp_before"] = sim_arm.tcp_pose("gripper")[:3, 3].copy()
 
+    if stream is not None:
+        _record_motion(cell, sim_arm, stream)
     driver = SimArmAdapter(sim_arm)
     try:
         with driver:
@@ -180,6 +182,32 @@ def _execute_and_check(cell, sim_arm, plan, limits, stream) -> EpisodeOutcome:
         return out
     out.success = True
     return out
+
+
+ARM_LOG_PERIOD_S = 0.05
+"""Sim time between two logged arm states while the arm moves."""
+
+
+def _record_motion(cell, sim_arm, stream) -> None:
+    """Log the arm (flange, joints, DH link frames) every ``ARM_LOG_PERIOD_S`` of sim time
+    while it moves, by wrapping this cell's ``step``."""
+    from sim.ur5e import dh_frames
+
+    from . import recording as rec
+
+    step = cell.step
+    last = [-np.inf]
+
+    def step_and_log(n: int = 1) -> None:
+        step(n)
+        if cell.data.time - last[0] >= ARM_LOG_PERIOD_S:
+            last[0] = cell.data.time
+            q = sim_arm.joints()
+            frames = dh_frames(q)
+            rec.log_arm_state(stream, cell.data.time, frames[-1], q, link_poses=list(frames))
+            rec.log_gripper(stream, cell.data.time, sim_arm.gripper_opening())
+
+    cell.step = step_and_log
 
 
 def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Path | None) -> dict[str, Any]:
