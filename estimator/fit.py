@@ -17,6 +17,9 @@ analytic Jacobian:
    and the camera projection.
 4. The refined candidates are ranked by the paper's own silhouette cost (eq. 11); the
    best one is returned with its per-view costs on the full observed masks.
+5. Only when that cost is high (a poor fit) a wide stage runs: a finer, larger beam plus
+   the other branches next to the winner (mirrored bends, flipped or quarter-turned
+   twists); its result replaces the first only when its eq.-11 cost is clearly lower.
 """
 from __future__ import annotations
 
@@ -49,6 +52,10 @@ DELTA_IN_PX = 1.5
 OUTLINE_POINTS = 48
 """Observed outline points per view in the coverage term."""
 BEAM = 8
+DIVERSE_M = 0.006
+"""Plate ends of two kept partial chains differ by at least this [m] (beam diversity)."""
+DIVERSE_POOL = 4
+"""The diverse beam picks from this many times its width of best candidates."""
 """Partial chains kept per node in the global stage."""
 REFINE = 2
 """Candidates refined to convergence after screening."""
@@ -66,6 +73,17 @@ LM_RTOL = 3e-3
 """A local-stage step that lowers the robust cost by less than this fraction ends it."""
 ANGLE_PRIOR = 0.05
 """Weight of a weak preference for small joint angles in the global stage."""
+WIDE_COST = 0.15
+"""Eq.-11 cost above which a fit is poor enough to pay for the wide search."""
+WIDE_BEAM = 16
+"""Partial chains kept per node in the wide search."""
+WIDE_VARIANTS = True
+WIDE_GAIN = 0.85
+"""The wide search's result replaces the first when its eq.-11 cost is below this
+fraction of the first's (only a clear difference counts)."""
+SMOOTH_PX = 0.0
+"""Residual [px] per radian of bend difference between consecutive joints (0: off; 3-8
+measured no help on sim captures, the wrong branches are chosen in the beam)."""
 ANGLE_PRIOR_PX = 1.0
 """Residual [px] per radian of every joint angle in the local stage (a weak prior)."""
 
@@ -77,16 +95,13 @@ BEAM_OUTLINE_STEP = 2
 """Every how many observed outline points rank the beam's complete chains."""
 
 
-def _angle_grid() -> np.ndarray:
+def _angle_grid(tx, ty, tz) -> np.ndarray:
     """Candidate joint angles (θx, θy, θz) of the global stage [rad]."""
-    tx = np.array([-0.8, -0.4, 0.0, 0.4, 0.8])
-    ty = np.linspace(-1.2, 1.2, 9)
-    tz = np.array([0.0])
     return np.stack(np.meshgrid(tx, ty, tz, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
-_GRID = _angle_grid()
-_GRID_R = joint_rotations(_GRID)
+_GRID = _angle_grid([-0.8, -0.4, 0.0, 0.4, 0.8], np.linspace(-1.2, 1.2, 9), [0.0])
+_WIDE_GRID = _angle_grid(np.linspace(-1.2, 1.2, 7), np.linspace(-1.5, 1.5, 11), [-0.4, 0.0, 0.4])
 
 
 # --------------------------------------------------------------------------- views
@@ -451,13 +466,22 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
     # small in the same way.
     weights = np.full(params.shape[1], ANGLE_PRIOR_PX)
     weights[na:] = SHIFT_PRIOR
-    prior = weights * params
+    prior_J = np.diag(weights)
+    if SMOOTH_PX > 0:
+        # A real tape bends smoothly: consecutive joints bend alike.
+        D = np.zeros((2 * (chain.n - 1), params.shape[1]))
+        for i in range(chain.n - 1):
+            for k, ax in enumerate((1, 2)):
+                D[2 * i + k, 3 * (i + 1) + ax] = SMOOTH_PX
+                D[2 * i + k, 3 * i + ax] = -SMOOTH_PX
+        prior_J = np.concatenate([prior_J, D])
+    prior = params @ prior_J.T
     rs.append(prior)
     cost += 0.5 * np.sum(prior * prior, axis=1)
     r = np.concatenate(rs, axis=1)
     if not jacobian:
         return r, None, cost
-    js.append(np.broadcast_to(np.diag(weights), (B,) + (params.shape[1],) * 2))
+    js.append(np.broadcast_to(prior_J, (B,) + prior_J.shape))
     return r, np.concatenate(js, axis=1), cost
 
 
@@ -514,8 +538,34 @@ def _levenberg_marquardt(chain: _Chain, fields: list[_Field], params: np.ndarray
 
 # --------------------------------------------------------------------------- global stage
 
-def _beam_search(spec: TapeSpec, fields: list[_Field]) -> list[np.ndarray]:
-    """Candidate chains (n, 3) from a node-by-node beam search, best first."""
+def _diverse(order: np.ndarray, ends: np.ndarray, count: int) -> np.ndarray:
+    """Up to ``count`` of the candidates ``order`` (best first) whose new plate ends
+    (``ends[k]``: centre, left and right corner (3, 3) [m]) lie at least DIVERSE_M from
+    every better kept one's: without this the beam fills with near copies of one chain
+    (twist variants of the same bends) and the other bend branch is lost."""
+    if DIVERSE_M <= 0 or len(order) <= count:
+        return order[:count]
+    e = ends[order].reshape(len(order), -1, 3)
+    d = np.max(np.linalg.norm(e[:, None] - e[None, :], axis=-1), axis=-1)
+    close = d < DIVERSE_M
+    kept = np.zeros(len(order), bool)
+    for k in range(len(order)):
+        if not np.any(close[k] & kept):
+            kept[k] = True
+            if kept.sum() == count:
+                break
+    chosen = order[kept]
+    if len(chosen) < count:
+        # Fill up with the best of the suppressed ones.
+        chosen = np.concatenate([chosen, order[~kept][:count - len(chosen)]])
+    return chosen
+
+
+def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
+                 beam: int = BEAM) -> list[np.ndarray]:
+    """Candidate chains (n, 3) from a node-by-node beam search over joint angles ``grid``
+    (g, 3) keeping ``beam`` partial chains, best first."""
+    grid_r = joint_rotations(grid)
     n = spec.n
     h = 0.5 * spec.width
     frames = spec.base_rotation[None]
@@ -525,7 +575,7 @@ def _beam_search(spec: TapeSpec, fields: list[_Field]) -> list[np.ndarray]:
     lefts = (nodes + h * frames[:, :, 1])[:, None, :]
     rights = (nodes - h * frames[:, :, 1])[:, None, :]
     for i in range(n):
-        F = np.einsum("bij,gjk->bgik", frames, _GRID_R)              # (b, g, 3, 3)
+        F = np.einsum("bij,gjk->bgik", frames, grid_r)               # (b, g, 3, 3)
         P = nodes[:, None, :] + spec.segment_lengths[i] * F[..., :, 0]
         L0 = (nodes + h * frames[:, :, 1])[:, None, None, :]
         R0 = (nodes - h * frames[:, :, 1])[:, None, None, :]
@@ -550,15 +600,17 @@ def _beam_search(spec: TapeSpec, fields: list[_Field]) -> list[np.ndarray]:
             if ignored is not None:
                 rho = np.where(ignored, 0.0, rho)
             plate += rho.sum(axis=2)
-        prior = ANGLE_PRIOR * np.sum(_GRID ** 2, axis=1)
+        prior = ANGLE_PRIOR * np.sum(grid ** 2, axis=1)
         total = (scores[:, None] + plate + prior[None, :]).reshape(-1)
         last = i == n - 1
-        keep = np.argsort(total)[:BEAM * (4 if last else 1)]
-        b, gi = np.divmod(keep, len(_GRID))
+        count = beam * (4 if last else 1)
+        keep = _diverse(np.argsort(total)[:DIVERSE_POOL * count],
+                        np.stack([P, L1[:, :, 0], R1[:, :, 0]], axis=2).reshape(-1, 3, 3), count)
+        b, gi = np.divmod(keep, len(grid))
         frames = F[b, gi]
         nodes = P[b, gi]
         scores = total[keep]
-        history = np.concatenate([history[b], _GRID[gi][:, None, :]], axis=1)
+        history = np.concatenate([history[b], grid[gi][:, None, :]], axis=1)
         lefts = np.concatenate([lefts[b], L1[b, gi]], axis=1)
         rights = np.concatenate([rights[b], R1[b, gi]], axis=1)
     # Complete chains: add the coverage of the observed outline, keep the best.
@@ -582,39 +634,74 @@ def _beam_search(spec: TapeSpec, fields: list[_Field]) -> list[np.ndarray]:
         d = np.sqrt(np.min(rx * rx + ry * ry, axis=2))
         rho, _ = _huber(d)
         scores = scores + BEAM_OUTLINE_STEP * rho.sum(axis=1)
-    order = np.argsort(scores)[:BEAM]
+    order = np.argsort(scores)[:beam]
     return [history[k] for k in order]
 
 
 # --------------------------------------------------------------------------- public
 
-def fit_default(capture: Capture, callback: Callback | None = None):
-    """Fit by the project's method; returns (angles, trace, evaluations) where trace holds
-    the winning candidate's angles after each local-stage iteration."""
-    chain = _Chain(capture.tape)
-    fields = [_prepare(v) for v in capture.views]
-    starts = np.array(_beam_search(capture.tape, fields))
+def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_costs):
+    """Local stage on candidate chains (B, n, 3): a few iterations on all at once, the
+    best REFINE (by the robust cost) to convergence, ranked by the silhouette cost (eq.
+    11). Returns (angles (n, 3), trace, eq.-11 cost) of the winner."""
     traces: list[list[np.ndarray]] = [[] for _ in starts]
-    # A few iterations on every candidate at once, then the best few to convergence.
     params = starts.reshape(len(starts), -1)
     if SHIFTS:
         params = np.concatenate([params, np.zeros((len(params), 2 * len(fields)))], axis=1)
     params, cost = _levenberg_marquardt(chain, fields, params, LM_SCREEN, traces)
     # Screened by the robust cost (ranking all by eq. 11 was measured no better on the
     # samples and worse on sim captures); the silhouette cost (eq. 11) picks the winner.
-    evaluator = CostEvaluator([f.target for f in fields])
-
-    def silhouette_costs(p: np.ndarray) -> np.ndarray:
-        angles = p[:, :3 * chain.n].reshape(-1, chain.n, 3)
-        return np.array([evaluator.cost(forward_kinematics(capture.tape, a).quads()) for a in angles])
-
     keep = np.argsort(cost)[:REFINE]
     sub_traces = [traces[k] for k in keep]
     params, _ = _levenberg_marquardt(chain, fields, params[keep], LM_ITERATIONS, sub_traces)
     refined = params[:, :3 * chain.n].reshape(-1, chain.n, 3)
-    costs = silhouette_costs(params)
+    costs = silhouette_costs(refined)
     best = int(np.argmin(costs))
-    return refined[best], sub_traces[best], evaluator.evaluations
+    return refined[best], sub_traces[best], float(costs[best])
+
+
+def _variants(angles: np.ndarray) -> np.ndarray:
+    """Chains near ``angles`` (n, 3) on other branches: from each joint on, the bend
+    mirrored (θy -> -θy) or the twist turned by ±π/2 or flipped in sign — the ambiguities
+    a silhouette leaves (a plate seen edge-on, a bend towards or away from a camera)."""
+    out = []
+    for j in range(len(angles)):
+        for kind in range(4):
+            a = angles.copy()
+            if kind == 0:
+                a[j:, 1] = -a[j:, 1]
+            elif kind == 1:
+                a[j, 0] = -a[j, 0]
+            else:
+                a[j, 0] += np.pi / 2 if kind == 2 else -np.pi / 2
+            out.append(a)
+    return np.array(out)
+
+
+def fit_default(capture: Capture, callback: Callback | None = None):
+    """Fit by the project's method; returns (angles, trace, evaluations) where trace holds
+    the winning candidate's angles after each local-stage iteration."""
+    chain = _Chain(capture.tape)
+    fields = [_prepare(v) for v in capture.views]
+    evaluator = CostEvaluator([f.target for f in fields])
+
+    def silhouette_costs(angles: np.ndarray) -> np.ndarray:
+        return np.array([evaluator.cost(forward_kinematics(capture.tape, a).quads()) for a in angles])
+
+    starts = np.array(_beam_search(capture.tape, fields))
+    angles, trace, cost = _refine(chain, fields, starts, silhouette_costs)
+    if cost > WIDE_COST:
+        # A poor fit: only these pay for a wider search (a finer, larger beam and the
+        # other branches next to the winner); it replaces the first result only when its
+        # silhouette cost is clearly lower.
+        parts = [_variants(angles)] if WIDE_VARIANTS else []
+        if WIDE_BEAM:
+            parts.append(np.array(_beam_search(capture.tape, fields, _WIDE_GRID, WIDE_BEAM)))
+        wide = np.concatenate(parts)
+        a2, t2, c2 = _refine(chain, fields, wide, silhouette_costs)
+        if c2 < WIDE_GAIN * cost:
+            angles, trace, cost = a2, trace + t2, c2
+    return angles, trace, evaluator.evaluations
 
 
 def estimate(capture: Capture, method: str = "default", callback: Callback | None = None) -> Estimate:
