@@ -14,6 +14,10 @@ Differences from the real arm, and why:
   simulated finger servos alone slam the pads together at ~0.4 m/s, and a 0.2 mm tape
   then passes through a pad within one timestep (seen with the true tip frame on seeds
   2, 4 and 7). The adapter ramps the finger targets, then lets ``SimArm`` settle them.
+* ``teleport=True`` places the arm exactly at each target (``SimArm.set_joints``) instead
+  of simulating the motion: for rendering reference images at given joints (a simulated
+  move settles within the cell file's ``joint_tolerance``, ~0.1 mm at the plate). Nothing
+  collides on the way, so procedures such as calibration use the simulated motion.
 * No one can push a simulated arm by hand, so ``freedrive`` raises :class:`ArmError`.
 * "Connecting" binds to the simulation, which is always there.
 """
@@ -28,14 +32,16 @@ from .poses import matrix_to_pose6, pose6_to_matrix
 
 
 class SimArmAdapter(Arm):
-    """``SimArmAdapter(sim_arm, close_speed=0.1)``: close_speed [m/s] of the pad distance;
+    """``SimArmAdapter(sim_arm, close_speed=0.1, teleport=False)``: close_speed [m/s] of the
+    pad distance; teleport: set the joints instead of simulating moves (module docstring).
     ``gripper_opening`` [m] is the pad distance after the last gripper action (None before)."""
 
-    def __init__(self, sim_arm: Any, close_speed: float = 0.1) -> None:
+    def __init__(self, sim_arm: Any, close_speed: float = 0.1, teleport: bool = False) -> None:
         if not close_speed > 0:
             raise ArmError(f"gripper close speed must be positive, got {close_speed}")
         self.sim_arm = sim_arm
         self.close_speed = float(close_speed)
+        self.teleport = bool(teleport)
         self.name = "simulated arm"
         self._connected = False
         self._protective = False
@@ -83,11 +89,19 @@ class SimArmAdapter(Arm):
             raise ArmError(f"{self.name}: {what}: {e}") from None
 
     def _move_linear(self, pose: np.ndarray, speed: float, acceleration: float) -> None:
-        self._guarded(lambda: self.sim_arm.move_tcp(pose6_to_matrix(pose), speed=speed, tool="flange"),
-                      "linear move")
+        world_from_flange = pose6_to_matrix(pose)
+        if self.teleport:
+            self._guarded(lambda: self.sim_arm.set_joints(self.sim_arm.ik(world_from_flange, "flange")),
+                          "linear move")
+        else:
+            self._guarded(lambda: self.sim_arm.move_tcp(world_from_flange, speed=speed, tool="flange"),
+                          "linear move")
 
     def _move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:
-        self._guarded(lambda: self.sim_arm.move_joints(q, speed=speed), "joint move")
+        if self.teleport:
+            self._guarded(lambda: self.sim_arm.set_joints(q), "joint move")
+        else:
+            self._guarded(lambda: self.sim_arm.move_joints(q, speed=speed), "joint move")
 
     def _hold(self) -> None:
         # Command the measured joints: the position servos then hold the arm still.

@@ -8,6 +8,7 @@ Knows nothing of ur_rtde; ``cell`` puts this behind the same interface as the re
 """
 from __future__ import annotations
 
+import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -22,6 +23,15 @@ _WAYPOINT_STEPS = 10   # a Cartesian move solves IK every this many physics step
 
 class SimArmError(TapecellError):
     """A simulated move was refused or did not arrive."""
+
+
+def _joint_target(q) -> np.ndarray:
+    q = np.asarray(q, float)
+    if q.shape != (6,) or not np.all(np.isfinite(q)):
+        raise SimArmError(f"joint target must be 6 finite angles, got {q.tolist()}")
+    if np.any(q < JOINT_LOWER) or np.any(q > JOINT_UPPER):
+        raise SimArmError(f"joint target {np.round(q, 4).tolist()} is outside the joint limits")
+    return q
 
 
 def as_matrix(pose) -> np.ndarray:
@@ -90,11 +100,7 @@ class SimArm:
     def move_joints(self, q, speed: float | None = None, settle_s: float = 1.0) -> np.ndarray:
         """Move to joints ``q`` [rad] at ``speed`` rad/s (the fastest joint; default from the
         cell file), simulating every step; returns the joints reached."""
-        q = np.asarray(q, float)
-        if q.shape != (6,) or not np.all(np.isfinite(q)):
-            raise SimArmError(f"joint target must be 6 finite angles, got {q.tolist()}")
-        if np.any(q < JOINT_LOWER) or np.any(q > JOINT_UPPER):
-            raise SimArmError(f"joint target {np.round(q, 4).tolist()} is outside the joint limits")
+        q = _joint_target(q)
         speed = speed or self.cell.config.arm.max_joint_speed
         q0 = self.cell.data.ctrl[self.cell.arm_actuators].copy()
         dt = self.cell.model.opt.timestep
@@ -130,6 +136,19 @@ class SimArm:
                 self.cell.step(1)
             q_prev = q_next
         return self._wait(q_goal, settle_s)
+
+    def set_joints(self, q) -> np.ndarray:
+        """Place the arm exactly at joints ``q`` [rad] (servo targets too) without simulating
+        the motion: nothing collides on the way and no time passes. For putting the arm at
+        given joints exactly (a settled move stops within ``joint_tolerance``), e.g. to
+        render reference images; returns the joints."""
+        q = _joint_target(q)
+        d = self.cell.data
+        d.qpos[self.cell.arm_qadr] = q
+        d.qvel[self.cell.arm_dofs] = 0.0
+        self._command(q)
+        mujoco.mj_forward(self.cell.model, d)
+        return self.joints()
 
     def park(self) -> np.ndarray:
         """Move to the cell file's park joints, out of every camera's view."""

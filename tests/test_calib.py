@@ -182,15 +182,17 @@ def test_real_calibrate_execute_moves_exactly_the_plan(tmp_path, fake_ur):
     """--execute with a faked controller and the pose images from a folder (rendered here
     at the planned poses, as a real camera would have taken them)."""
     import cv2
+    from cell.commands.calibrate import SimCameras
+    from cell.sim_arm import SimArmAdapter
+    from sim.arm import SimArm
     from sim.cell import SimCell
-    from cell.commands.calibrate import SimCameras, SimJointArm
 
     cell = load_cell_config()
     n_cams = min(len(cell.robot.camera_devices), len(cell.cameras.camera))
     poses = plan_poses(cell, n_cams)
     images = tmp_path / "images"
     with SimCell(cell, seed=0, n_cameras=n_cams, tool="plate") as sim:
-        src, arm = SimCameras(sim), SimJointArm(sim)
+        src, arm = SimCameras(sim), SimArmAdapter(SimArm(sim), teleport=True)
         arm.connect()
         for p in poses:
             arm.move_joints(p.joints, 0.5, 1.0)

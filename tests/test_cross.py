@@ -76,13 +76,15 @@ def sim_plate():
     from sim.config import load_cell_config
     from sim.cell import SimCell
     from cell.calibration import plan_poses
-    from cell.commands.calibrate import SimCameras, SimJointArm
+    from cell.commands.calibrate import SimCameras
+    from cell.sim_arm import SimArmAdapter
+    from sim.arm import SimArm
 
     cell = load_cell_config()
     poses = plan_poses(cell, 2)
     with SimCell(cell, seed=0, n_cameras=2, tool="plate") as sim:
         src = SimCameras(sim)
-        arm = SimJointArm(sim)
+        arm = SimArmAdapter(SimArm(sim), teleport=True)
         arm.connect()
         out = []
         for p in poses[:4]:

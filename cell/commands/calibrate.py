@@ -21,8 +21,7 @@ import numpy as np
 from estimator.capture import save_cameras
 from estimator.errors import TapecellError
 
-from ..arm import Arm
-from ..calibration import (CalibrationError, CalibrationResult, PlannedPose, camera_errors, plan_poses,
+from ..calibration import (CalibrationResult, PlannedPose, camera_errors, plan_poses,
                            run_calibration)
 
 
@@ -62,84 +61,20 @@ class SimCameras:
         return {n: self.sim.render_rgb(n) for n in self.names}
 
 
-class SimJointArm(Arm):
-    """The simulated UR5e positioned by joints for calibration: a move sets the MuJoCo
-    joints (and their position actuators) to the target, and the reported flange pose is
-    read back from MuJoCo's ``flange`` body, independent of the planner's DH model."""
-
-    name = "simulated arm"
-
-    def __init__(self, sim_cell) -> None:
-        self.sim = sim_cell
-        self._connected = False
-        self._flange = sim_cell.model.body("flange").id
-
-    @property
-    def is_connected(self) -> bool:
-        return self._connected
-
-    def _connect(self) -> None:
-        self._connected = True
-
-    def _disconnect(self) -> None:
-        self._connected = False
-
-    def _tcp_pose(self) -> np.ndarray:
-        from ..poses import matrix_to_pose6
-
-        d = self.sim.data
-        T = np.eye(4)
-        T[:3, :3] = d.xmat[self._flange].reshape(3, 3)
-        T[:3, 3] = d.xpos[self._flange]
-        return matrix_to_pose6(T)
-
-    def _joints(self) -> np.ndarray:
-        return self.sim.data.qpos[self.sim.arm_qadr].copy()
-
-    def _is_protective_stopped(self) -> bool:
-        return False
-
-    def _move_linear(self, pose, speed, acceleration) -> None:
-        from ..kinematics import ik_nearest
-        from ..poses import pose6_to_matrix
-
-        q = ik_nearest(pose6_to_matrix(pose), self._joints())
-        if q is None:
-            raise CalibrationError(f"simulated arm: pose {np.round(pose, 4).tolist()} is out of reach")
-        self._move_joints(q, speed, acceleration)
-
-    def _move_joints(self, q, speed, acceleration) -> None:
-        import mujoco
-
-        d = self.sim.data
-        d.qpos[self.sim.arm_qadr] = q
-        d.qvel[self.sim.arm_dofs] = 0.0
-        d.ctrl[self.sim.arm_actuators] = q
-        mujoco.mj_forward(self.sim.model, d)
-
-    def _stop(self) -> None:
-        pass
-
-    def _open_gripper(self) -> None:
-        raise CalibrationError("the calibration plate has no gripper")
-
-    def _close_gripper(self) -> None:
-        raise CalibrationError("the calibration plate has no gripper")
-
-    def _freedrive(self, enable: bool) -> None:
-        raise CalibrationError("the simulated arm has no freedrive")
-
-
 def calibrate_sim(cell, seed: int = 0, n_cameras: int = 2, rec=None, log=print):
-    """Calibrate the simulated cell; returns (CalibrationResult, true cameras)."""
+    """Calibrate the simulated cell; returns (CalibrationResult, true cameras). The arm is
+    the physically simulated UR5e behind the same Arm interface and safety checks as on the
+    real cell: it drives through every pose and the cameras render where it settled."""
+    from sim.arm import SimArm
     from sim.cell import SimCell
 
     from ..safety import SafeArm, SafetyLimits
+    from ..sim_arm import SimArmAdapter
 
     poses = plan_poses(cell, n_cameras)
     with SimCell(cell, seed=seed, n_cameras=n_cameras, tool="plate") as sim:
         source = SimCameras(sim)
-        arm = SafeArm(SimJointArm(sim), SafetyLimits.from_config(cell.limits), cell.tools.plate.flange_from_tcp)
+        arm = SafeArm(SimArmAdapter(SimArm(sim)), SafetyLimits.from_config(cell.limits), cell.tools.plate.flange_from_tcp)
         with arm:
             arm.move_joints(poses[0].joints, 0.5, 1.0)
             result = run_calibration(cell, arm, source, poses, rec=rec, log=log)
