@@ -57,7 +57,7 @@ DIVERSE_M = 0.006
 DIVERSE_POOL = 4
 """The diverse beam picks from this many times its width of best candidates."""
 """Partial chains kept per node in the global stage."""
-REFINE = 2
+REFINE = 3
 """Candidates refined to convergence after screening."""
 LM_SCREEN = 4
 """Levenberg-Marquardt iterations every beam candidate gets before screening."""
