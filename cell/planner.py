@@ -45,6 +45,7 @@ from typing import Any, Callable
 import numpy as np
 
 from estimator.errors import TapecellError
+from estimator.geometry import is_rotation
 
 from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import ik_nearest
@@ -253,7 +254,7 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
         raise PlanRefused("estimate rejected", f"fit cost {tip.cost:.4g} is above the threshold "
                                                f"{params.cost_threshold:.4g}")
     R_tip = np.asarray(tip.rotation, float)
-    if not np.allclose(R_tip.T @ R_tip, np.eye(3), atol=1e-4) or np.linalg.det(R_tip) < 0:
+    if not is_rotation(R_tip, tol=1e-4):
         raise PlanRefused("estimate rejected", "the tip rotation is not a rotation matrix")
     q_ref = REFERENCE_JOINTS if q_start is None else np.asarray(q_start, float)
     tape = None if tape_points is None else _densify(np.asarray(tape_points, float), 0.002)

@@ -19,6 +19,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from estimator.errors import TapecellError
+from estimator.geometry import is_rotation
+from sim.config import matrix_to_pose, pose_to_matrix
 
 
 class PoseError(TapecellError):
@@ -48,8 +50,7 @@ def as_transform(T: Any, what: str = "transform", tol: float = 1e-6) -> np.ndarr
         raise PoseError(f"{what} has shape {list(arr.shape)}, expected 4x4")
     if not np.all(np.isfinite(arr)):
         raise PoseError(f"{what} holds NaN or infinite numbers")
-    R = arr[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=tol) or np.linalg.det(R) < 0:
+    if not is_rotation(arr[:3, :3], tol):
         raise PoseError(f"{what} has a rotation block that is not a rotation matrix")
     if not np.allclose(arr[3], [0.0, 0.0, 0.0, 1.0]):
         raise PoseError(f"{what} has a last row other than [0, 0, 0, 1]")
@@ -58,17 +59,12 @@ def as_transform(T: Any, what: str = "transform", tol: float = 1e-6) -> np.ndarr
 
 def pose6_to_matrix(pose: Any) -> np.ndarray:
     """[x, y, z, rx, ry, rz] (m, rotation vector rad) -> 4x4 transform."""
-    p = as_pose6(pose)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(p[3:]).as_matrix()
-    T[:3, 3] = p[:3]
-    return T
+    return pose_to_matrix(as_pose6(pose))
 
 
 def matrix_to_pose6(T: Any) -> np.ndarray:
     """4x4 transform -> [x, y, z, rx, ry, rz]; the rotation vector has length <= pi."""
-    M = as_transform(T)
-    return np.concatenate([M[:3, 3], Rotation.from_matrix(M[:3, :3]).as_rotvec()])
+    return matrix_to_pose(as_transform(T))
 
 
 def invert(T: np.ndarray) -> np.ndarray:

@@ -46,13 +46,31 @@ def check_finite(value: Any, shape: tuple[int, ...] | None, what: str, source: s
     return arr
 
 
+def is_rotation(R: np.ndarray, tol: float = 1e-5) -> bool:
+    """True when the (3, 3) ``R`` is a proper rotation: R R^T = I within ``tol``, det > 0."""
+    return bool(np.allclose(R @ R.T, np.eye(3), atol=tol) and np.linalg.det(R) >= 0)
+
+
 def check_rotation(value: Any, what: str, source: str = "", tol: float = 1e-5) -> np.ndarray:
     """``value`` as a 3x3 proper rotation matrix, or a :class:`CaptureError`."""
     R = check_finite(value, (3, 3), what, source)
     where = f"{source}: " if source else ""
-    if not np.allclose(R @ R.T, np.eye(3), atol=tol) or np.linalg.det(R) < 0:
+    if not is_rotation(R, tol):
         raise CaptureError(f"{where}{what} is not a rotation matrix (R R^T != I or det != 1)")
     return R
+
+
+def look_at(position: Any, target: Any, up: Any) -> np.ndarray:
+    """(3, 3) world_from_camera rotation in OpenCV's axes (x right, y down, z forward) of a
+    camera at ``position`` [m] looking at ``target`` [m] with ``up`` up in the image.
+    Degenerate input (target at the position, looking along ``up``) gives NaN: callers
+    that read it from a file check first and say which file."""
+    z = np.asarray(target, float) - np.asarray(position, float)
+    z = z / np.linalg.norm(z)
+    down = -np.asarray(up, float)
+    y = down - np.dot(down, z) * z
+    y = y / np.linalg.norm(y)
+    return np.column_stack([np.cross(y, z), y, z])
 
 
 def transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:

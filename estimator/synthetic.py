@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from .capture import Capture, Truth, View
-from .geometry import Camera, rot_x, rot_y, rot_z
+from .geometry import Camera, look_at, rot_x, rot_y, rot_z
 from .silhouette import project_quads, render
 from .tape import TapeShape, TapeSpec, forward_kinematics
 
@@ -55,17 +55,6 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     ])
 
 
-def _look_at(center: np.ndarray, target: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """camera_from_world (R, t) of a camera at ``center`` looking at ``target`` (OpenCV axes)."""
-    z = target - center
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return R, -R @ center
-
-
 def rig_cameras(rng: np.random.Generator, target: np.ndarray, count: int = 2,
                 distortion: bool = False) -> list[Camera]:
     """The paper's rig looking at ``target`` [m] from a random direction."""
@@ -76,7 +65,8 @@ def rig_cameras(rng: np.random.Generator, target: np.ndarray, count: int = 2,
     for k in range(count):
         center = target + world_from_rig @ (offsets[k] * rng.uniform(0.95, 1.05))
         aim = target + rng.normal(scale=0.01, size=3)
-        R, t = _look_at(center, aim, world_from_rig @ np.array([0.0, -1.0, 0.0]))
+        R = look_at(center, aim, world_from_rig @ np.array([0.0, -1.0, 0.0])).T   # camera_from_world
+        t = -R @ center
         f = FX_PX * rng.uniform(0.98, 1.02)
         K = np.array([[f, 0.0, 319.5 + rng.normal(scale=3)], [0.0, f, 239.5 + rng.normal(scale=3)], [0, 0, 1]])
         dist = np.zeros(5)

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from estimator.errors import TapecellError
+from estimator.geometry import look_at
 
 Vec3 = tuple[float, float, float]
 Pose6 = tuple[float, float, float, float, float, float]
@@ -420,12 +421,9 @@ def look_at_world_from_cv(position: Any, target: Any, up: Any, source: str = "",
         raise SimConfigError(f"{source}: camera '{name}' has its target at its position")
     z = z / np.linalg.norm(z)
     down = -np.asarray(up, float)
-    y = down - np.dot(down, z) * z
-    if np.linalg.norm(y) < 1e-9:
+    if np.linalg.norm(down - np.dot(down, z) * z) < 1e-9:
         raise SimConfigError(f"{source}: camera '{name}' looks along its 'up' direction")
-    y = y / np.linalg.norm(y)
-    x = np.cross(y, z)
-    return np.column_stack([x, y, z])
+    return look_at(position, target, up)
 
 
 def pose_to_matrix(pose: Any) -> np.ndarray:

@@ -12,7 +12,7 @@ from rerun.chunk import RrdReader
 from cell import recording as rec
 from estimator.capture import Capture, Truth, View
 from estimator.errors import TapecellError
-from estimator.geometry import Camera, rot_x, rot_z
+from estimator.geometry import Camera, look_at, rot_x, rot_z
 from estimator.result import Estimate
 from estimator.tape import TapeSpec, forward_kinematics
 
@@ -21,12 +21,7 @@ W, H = 64, 48
 
 def _look_at(name: str, eye: np.ndarray, target: np.ndarray) -> Camera:
     """A camera at ``eye`` looking at ``target``, image y roughly along world -z."""
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, -1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    camera_from_world = np.stack([x, y, z])
+    camera_from_world = look_at(eye, target, [0.0, 0.0, -1.0]).T
     K = np.array([[250.0, 0, (W - 1) / 2], [0, 250.0, (H - 1) / 2], [0, 0, 1]])
     return Camera(name, W, H, K, np.zeros(5), camera_from_world, -camera_from_world @ eye)
 
