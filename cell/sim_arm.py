@@ -10,10 +10,8 @@ Differences from the real arm, and why:
 * A move whose joints do not arrive (the arm blocked by contact) is what a real arm
   reports as a protective stop: the adapter raises :class:`ProtectiveStopError` and
   reports ``is_protective_stopped()`` True until :meth:`SimArmAdapter.clear_protective_stop`.
-* The jaws close at ``close_speed`` (pad distance, m/s), as a real gripper does: the
-  simulated finger servos alone slam the pads together at ~0.4 m/s, and a 0.2 mm tape
-  then passes through a pad within one timestep (seen with the true tip frame on seeds
-  2, 4 and 7). The adapter ramps the finger targets, then lets ``SimArm`` settle them.
+* The jaws close at the cell file's ``tools.gripper.close_speed`` (``SimArm.close_gripper``
+  ramps them, as a real gripper closes).
 * ``teleport=True`` places the arm exactly at each target (``SimArm.set_joints``) instead
   of simulating the motion: for rendering reference images at given joints (a simulated
   move settles within the cell file's ``joint_tolerance``, ~0.1 mm at the plate). Nothing
@@ -32,15 +30,12 @@ from .poses import matrix_to_pose6, pose6_to_matrix
 
 
 class SimArmAdapter(Arm):
-    """``SimArmAdapter(sim_arm, close_speed=0.1, teleport=False)``: close_speed [m/s] of the
-    pad distance; teleport: set the joints instead of simulating moves (module docstring).
-    ``gripper_opening`` [m] is the pad distance after the last gripper action (None before)."""
+    """``SimArmAdapter(sim_arm, teleport=False)``: teleport: set the joints instead of
+    simulating moves (module docstring). ``gripper_opening`` [m] is the pad distance after
+    the last gripper action (None before)."""
 
-    def __init__(self, sim_arm: Any, close_speed: float = 0.1, teleport: bool = False) -> None:
-        if not close_speed > 0:
-            raise ArmError(f"gripper close speed must be positive, got {close_speed}")
+    def __init__(self, sim_arm: Any, teleport: bool = False) -> None:
         self.sim_arm = sim_arm
-        self.close_speed = float(close_speed)
         self.teleport = bool(teleport)
         self.name = "simulated arm"
         self._connected = False
@@ -115,17 +110,6 @@ class SimArmAdapter(Arm):
         self.gripper_opening = float(self.sim_arm.open_gripper())
 
     def _close_gripper(self) -> None:
-        cell = self.sim_arm.cell
-        ctrl = cell.data.ctrl
-        fingers = cell.finger_actuators
-        closed = cell.model.actuator_ctrlrange[fingers, 0]      # each finger's closed target [m]
-        start = ctrl[fingers].copy()
-        dt = cell.model.opt.timestep
-        # Each finger covers half the pad distance: ramp at close_speed / 2 per finger.
-        n = max(1, int(np.ceil(np.max(start - closed) / (self.close_speed / 2) / dt)))
-        for i in range(1, n + 1):
-            ctrl[fingers] = start + (closed - start) * (i / n)
-            cell.step(1)
         self.gripper_opening = float(self.sim_arm.close_gripper())
 
     def _freedrive(self, enable: bool) -> None:

@@ -160,13 +160,15 @@ class NeedleTool:
 @dataclass(frozen=True)
 class GripperTool:
     """Parallel gripper; the TCP is midway between the pads, which close along the TCP's y.
-    max_opening m; pad_size m (along x, thickness y, depth z); finger_kp N/m; max_force N."""
+    max_opening m; pad_size m (along x, thickness y, depth z); finger_kp N/m; max_force N;
+    close_speed m/s: how fast the pad distance shrinks when closing (simulated arm)."""
     flange_from_tcp: Pose6
     max_opening: float
     pad_size: Vec3
     finger_kp: float
     max_force: float
     friction: float
+    close_speed: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -381,6 +383,7 @@ def _check(cfg: CellConfig) -> None:
     need(len(set(names)) == len(names), f"camera names must be unique, got {names}")
     need(cfg.calibration.distortion_model in ("none", "k1", "k1k2", "k1k2p1p2", "k1k2p1p2k3"),
          "'calibration.distortion_model' must be none, k1, k1k2, k1k2p1p2 or k1k2p1p2k3")
+    need(cfg.tools.gripper.close_speed > 0, "'tools.gripper.close_speed' must be positive")
     need(all(a < b for a, b in zip(cfg.limits.workspace_min, cfg.limits.workspace_max)),
          "'limits.workspace_min' must be below 'limits.workspace_max' on every axis")
     for cam in cfg.cameras.camera:
