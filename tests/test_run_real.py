@@ -65,3 +65,63 @@ def test_missing_images_is_one_line(real_like, tmp_path, capsys):
                  "--images", str(tmp_path / "nowhere")])
     out, err = capsys.readouterr()
     assert code == 2 and err.count("\n") == 1 and "nowhere" in err
+
+
+def _expected_plan(images, cameras, q_start):
+    from cell.commands.run import grab_capture
+    from cell.planner import GraspParams, GripperGeometry, TipFrame, plan_grasp
+    from cell.safety import SafetyLimits
+    from estimator import estimate
+    from estimator.capture import load_cameras
+
+    cfg = load_cell_config()
+    est = estimate(grab_capture(cfg, load_cameras(cameras), images))
+    return plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),
+                      GripperGeometry.from_config(cfg.tools.gripper), SafetyLimits.from_config(cfg.limits),
+                      q_start=q_start, tape_points=est.nodes)
+
+
+@pytest.mark.parametrize("answer", ["yes", "no"])
+def test_execute_sends_exactly_the_plan_after_confirmation(real_like, monkeypatch, capsys, answer):
+    import numpy as np
+    from fakes import FakeRobot, install_fake_rtde
+
+    images, cameras = real_like
+    q0 = np.array(load_cell_config().arm.park_joints)
+    robot = FakeRobot(q0)
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    monkeypatch.setattr("sys.stdin.isatty", lambda: True)
+    monkeypatch.setattr("builtins.input", lambda prompt="": answer)
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute"])
+    out, err = capsys.readouterr()
+    motions = [c for c in robot.log if c[0] in ("moveJ", "moveL", "setStandardDigitalOut")]
+    if answer == "no":
+        assert code == 1 and "cancelled; nothing moved" in out
+        assert motions == []
+        return
+    assert code == 0, err
+    plan = _expected_plan(images, cameras, q0)
+    expected = []
+    for step in plan.steps:
+        if step.action == "move_joints":
+            expected.append(("moveJ", plan.waypoint(step.waypoint).q))
+        elif step.action == "move_linear":
+            expected.append(("moveL", plan.waypoint(step.waypoint).flange_pose))
+        else:
+            expected.append(("setStandardDigitalOut", step.action))
+    assert len(expected) >= 5 and [m[0] for m in motions] == [e[0] for e in expected]
+    limits = load_cell_config().limits
+    for m, e in zip(motions, expected):
+        if m[0] == "moveL":
+            assert np.allclose(m[1], e[1], atol=1e-9)
+            assert 0 < m[2] <= limits.max_tcp_speed and 0 < m[3] <= limits.max_tcp_accel
+        elif m[0] == "moveJ":
+            assert np.allclose(m[1], e[1], atol=1e-9)
+            assert 0 < m[2] <= limits.max_joint_speed
+    # each motion is preceded by the controller's own safety check
+    for i, call in enumerate(robot.log):
+        if call[0] == "moveL":
+            assert robot.log[i - 1][0] in ("speedStop", "servoStop", "isPoseWithinSafetyLimits")
+    assert any(c[0] == "isPoseWithinSafetyLimits" for c in robot.log)
+    assert "grasp executed" in out
