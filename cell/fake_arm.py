@@ -15,7 +15,7 @@ from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import fk, ik_nearest
 from .poses import matrix_to_pose6, pose6_to_matrix
 
-HOME_JOINTS = np.array([1.5708, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+HOME_JOINTS = np.array([-1.5708, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])   # the bundled cell file's home
 
 
 class FakeArm(Arm):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import tomllib
+import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
@@ -192,7 +193,7 @@ TOOL_NAMES = ("plate", "needle", "gripper")
 @dataclass(frozen=True)
 class LimitsSection:
     """Safety limits for every commanded pose: TCP workspace box and keep-out box
-    around the part [m], speeds m/s and rad/s, acceleration m/s^2."""
+    around the part [m], speeds m/s and rad/s, accelerations m/s^2 and rad/s^2."""
     workspace_min: Vec3
     workspace_max: Vec3
     max_tcp_speed: float
@@ -200,6 +201,7 @@ class LimitsSection:
     max_joint_speed: float
     keepout_min: Vec3
     keepout_max: Vec3
+    max_joint_accel: float = 1.4
 
 
 @dataclass(frozen=True)
@@ -218,20 +220,23 @@ class CalibrationSection:
 
 @dataclass(frozen=True)
 class RobotSection:
-    """The real cell: UR controller address and camera device indices."""
+    """The real cell: UR controller address and the cameras in ``[[cameras.camera]]`` order,
+    each an OpenCV ``VideoCapture`` device index (int) or a URL / device path (str)."""
     host: str
     port: int
-    camera_devices: tuple[int, ...]
+    camera_devices: tuple[int | str, ...]
 
 
 @dataclass(frozen=True)
 class GraspSection:
     """Grasp planning: reject estimates with cost above cost_threshold; grasp inset [m]
-    from the tip; approach from pregrasp_distance [m]; lift [m]."""
+    from the tip; approach from pregrasp_distance [m]; lift [m] along lift_mode's path
+    ("arc" or "peel", see ``cell.planner``)."""
     cost_threshold: float
     inset: float
     pregrasp_distance: float
     lift: float
+    lift_mode: str = "arc"
 
 
 @dataclass(frozen=True)
@@ -342,6 +347,16 @@ def _convert(tp: Any, value: Any, source: str, key: str) -> Any:
         if not isinstance(value, str):
             raise SimConfigError(f"{source}: '{key}' must be a string, got {value!r}")
         return value
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        options = typing.get_args(tp)
+        for option in options:
+            try:
+                return _convert(option, value, source, key)
+            except SimConfigError:
+                continue
+        names = " or ".join({int: "an integer", float: "a number", str: "a string", bool: "true or false"}
+                            .get(o, str(o)) for o in options)
+        raise SimConfigError(f"{source}: '{key}' must be {names}, got {value!r}")
     if typing.get_origin(tp) is tuple:
         args = typing.get_args(tp)
         if not isinstance(value, list):
@@ -384,6 +399,7 @@ def _check(cfg: CellConfig) -> None:
     need(cfg.calibration.distortion_model in ("none", "k1", "k1k2", "k1k2p1p2", "k1k2p1p2k3"),
          "'calibration.distortion_model' must be none, k1, k1k2, k1k2p1p2 or k1k2p1p2k3")
     need(cfg.tools.gripper.close_speed > 0, "'tools.gripper.close_speed' must be positive")
+    need(cfg.grasp.lift_mode in ("arc", "peel"), "'grasp.lift_mode' must be \"arc\" or \"peel\"")
     need(all(a < b for a, b in zip(cfg.limits.workspace_min, cfg.limits.workspace_max)),
          "'limits.workspace_min' must be below 'limits.workspace_max' on every axis")
     for cam in cfg.cameras.camera:

@@ -59,6 +59,41 @@ def test_wrong_type_and_bad_toml(tmp_path):
         load_cell_config(tmp_path / "nope.toml")
 
 
+def test_camera_devices_are_indices_or_urls(tmp_path):
+    devices = 'camera_devices = [0, "rtsp://192.168.1.20/stream1", "/dev/video4"]'
+    cfg = load_cell_config(_write(tmp_path, TEXT.replace("camera_devices = [0, 1, 2]", devices)))
+    assert cfg.robot.camera_devices == (0, "rtsp://192.168.1.20/stream1", "/dev/video4")
+    assert load_cell_config().robot.camera_devices == (0, 1, 2)
+    with pytest.raises(SimConfigError, match=r"'robot.camera_devices\[1\]' must be an integer or a string"):
+        load_cell_config(_write(tmp_path, TEXT.replace("camera_devices = [0, 1, 2]", "camera_devices = [0, 1.5]")))
+
+
+def test_home_is_inside_the_limits_with_every_tool():
+    from cell.fake_arm import FakeArm
+    from cell.planner import REFERENCE_JOINTS
+    from cell.safety import SafeArm, SafetyLimits
+
+    cfg = load_cell_config()
+    limits = SafetyLimits.from_config(cfg.limits)
+    for tool in ("plate", "needle", "gripper"):
+        fake = FakeArm(q0=REFERENCE_JOINTS)
+        with SafeArm(fake, limits, getattr(cfg.tools, tool).flange_from_tcp) as arm:
+            arm.move_joints(cfg.arm.home_joints, 0.5, 1.0)
+            np.testing.assert_allclose(arm.joints(), cfg.arm.home_joints)
+
+
+def test_grasp_lift_mode_and_joint_accel_reach_the_planner_and_limits(tmp_path):
+    from cell.planner import GraspParams
+    from cell.safety import SafetyLimits
+
+    text = TEXT.replace('lift_mode = "arc"', 'lift_mode = "peel"').replace("max_joint_accel = 1.4 ", "max_joint_accel = 1.1 ")
+    cfg = load_cell_config(_write(tmp_path, text))
+    assert GraspParams.from_config(cfg.grasp).lift_mode == "peel"
+    assert SafetyLimits.from_config(cfg.limits).max_joint_accel == 1.1
+    with pytest.raises(SimConfigError, match=r"'grasp.lift_mode' must be \"arc\" or \"peel\""):
+        load_cell_config(_write(tmp_path, TEXT.replace('lift_mode = "arc"', 'lift_mode = "yank"')))
+
+
 def test_cli_bad_cell_file_is_one_line(tmp_path, capsys):
     p = _write(tmp_path, TEXT.replace("[arm]\n", "[arm]\nspeed = 1\n"))
     assert main(["sim", "cameras", "--config", str(p), "--out", str(tmp_path / "c.json")]) == 2
