@@ -125,6 +125,12 @@ class SimCell:
         self.model.geom_contype[self._pad_geoms] = self._pad_contype if tool == "gripper" else 0
         self.mounted_tool = tool
 
+    def show_tape(self, visible: bool) -> None:
+        """Render the tape (the default) or not, e.g. to calibrate the cameras as on the real
+        cell, which is calibrated without a tape. Only rendering changes: the tape is still
+        simulated."""
+        self._option.geomgroup[GROUP_TAPE] = bool(visible)
+
     def reset(self, seed: int | None = None, arm_joints: np.ndarray | None = None) -> RestShape:
         """Reset to ``seed``'s curled tape (arm parked, gripper open) and let it settle under
         gravity for ``sim.settle_s``. Deterministic: the same seed gives the same state."""

@@ -156,3 +156,20 @@ def test_true_cameras_match_the_cell_file(cell3):
         assert (cam.width, cam.height) == (640, 480)
         uv = cam.project(np.array(placement.target)[None])[0]
         np.testing.assert_allclose(uv, [319.5, 239.5], atol=1e-6)
+
+
+def test_show_tape_hides_it_from_the_cameras_only(cell3):
+    def blue(rgb):      # pixels of the (blue) tape's colour
+        return int(((rgb[..., 2] > 150) & (rgb[..., 0] < 100)).sum())
+
+    cell3.reset(0)
+    shown = blue(cell3.render_rgb("cam0"))
+    cell3.show_tape(False)
+    try:
+        hidden = blue(cell3.render_rgb("cam0"))
+        tip = cell3.tape_tip_position()
+    finally:
+        cell3.show_tape(True)
+    assert shown > 500 and hidden < 0.01 * shown
+    np.testing.assert_allclose(tip, cell3.tape_tip_position())     # still simulated, where it was
+    assert blue(cell3.render_rgb("cam0")) == shown

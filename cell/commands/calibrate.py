@@ -47,11 +47,9 @@ class SimCameras:
     calibrated without a tape, and the sim's tape does not collide with the plate)."""
 
     def __init__(self, sim_cell) -> None:
-        from sim.scene import GROUP_TAPE
-
         self.sim = sim_cell
         self.names = list(sim_cell.camera_names)
-        sim_cell._option.geomgroup[GROUP_TAPE] = 0
+        sim_cell.show_tape(False)
 
     def size(self, name: str) -> tuple[int, int]:
         cam = self.sim.camera(name)
