@@ -54,7 +54,7 @@ OUTLINE_POINTS = 48
 BEAM = 8
 DIVERSE_M = 0.006
 """Plate ends of two kept partial chains differ by at least this [m] (beam diversity)."""
-DIVERSE_POOL = 4
+DIVERSE_POOL = 2
 """The diverse beam picks from this many times its width of best candidates."""
 """Partial chains kept per node in the global stage."""
 REFINE = 3
