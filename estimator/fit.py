@@ -75,7 +75,7 @@ ANGLE_PRIOR = 0.05
 """Weight of a weak preference for small joint angles in the global stage."""
 WIDE_COST = 0.15
 """Eq.-11 cost above which a fit is poor enough to pay for the wide search."""
-WIDE_BEAM = 16
+WIDE_BEAM = 8
 """Partial chains kept per node in the wide search."""
 WIDE_VARIANTS = True
 WIDE_GAIN = 0.85
@@ -390,28 +390,33 @@ def _coverage(chain: _Chain, f: _Field, u, v, Juv):
     s0, s1 = chain.segments[:, 0], chain.segments[:, 1]
     ax, ay = u[:, s0], v[:, s0]                                         # (B, K)
     bx, by = u[:, s1] - ax, v[:, s1] - ay
-    den = np.maximum(bx * bx + by * by, 1e-9)
+    inv_den = 1.0 / np.maximum(bx * bx + by * by, 1e-9)
+    bx3, by3 = bx[:, None], by[:, None]
     rx = obs[None, :, 0, None] - ax[:, None, :]                         # (B, P, K)
     ry = obs[None, :, 1, None] - ay[:, None, :]
-    t = np.clip((rx * bx[:, None] + ry * by[:, None]) / den[:, None], 0.0, 1.0)
-    dx = rx - t * bx[:, None]
-    dy = ry - t * by[:, None]
-    d2 = dx * dx + dy * dy
-    K = d2.shape[2]
-    flat = np.argmin(d2, axis=2).ravel() + K * np.arange(d2.shape[0] * d2.shape[1])
-    k = flat % K
-    d = np.sqrt(d2.ravel()[flat]).reshape(B, -1) + 1e-9
+    t = rx * bx3
+    t += ry * by3
+    t *= inv_den[:, None]
+    np.minimum(t, 1.0, out=t)
+    np.maximum(t, 0.0, out=t)
+    rx -= t * bx3
+    ry -= t * by3
+    d2 = rx * rx
+    d2 += ry * ry
+    k = np.argmin(d2, axis=2)[..., None]                                # (B, P, 1)
+    d = np.sqrt(np.take_along_axis(d2, k, 2)[..., 0]) + 1e-9            # (B, P)
     rho, w = _huber(d)
     sw = np.sqrt(w)
     if Juv is None:
         return rho.sum(axis=1), sw * d, None
-    tk = t.ravel()[flat][:, None]
-    b = np.repeat(np.arange(B), d.shape[1])
-    nx = (dx.ravel()[flat] / d.ravel())[:, None]
-    ny = (dy.ravel()[flat] / d.ravel())[:, None]
-    j0, j1 = Juv[b, s0[k]], Juv[b, s1[k]]                                # (B*P, 2, N)
-    g = -((1 - tk) * (nx * j0[:, 0] + ny * j0[:, 1]) + tk * (nx * j1[:, 0] + ny * j1[:, 1]))
-    g = g.reshape(B, -1, g.shape[-1])
+    k = k[..., 0]
+    tk = np.take_along_axis(t, k[..., None], 2)
+    nx = np.take_along_axis(rx, k[..., None], 2) / d[..., None]         # (B, P, 1)
+    ny = np.take_along_axis(ry, k[..., None], 2) / d[..., None]
+    b = np.arange(B)[:, None]
+    j0, j1 = Juv[b, s0[k]], Juv[b, s1[k]]                                # (B, P, 2, N)
+    g = (nx * j0[..., 0, :] + ny * j0[..., 1, :]) * (tk - 1.0)
+    g -= tk * (nx * j1[..., 0, :] + ny * j1[..., 1, :])
     return rho.sum(axis=1), sw * d, sw[..., None] * g
 
 
@@ -496,15 +501,16 @@ def _coverage_shift_jacobian(chain: _Chain, f: _Field, u, v) -> np.ndarray:
 
 
 def _levenberg_marquardt(chain: _Chain, fields: list[_Field], params: np.ndarray, iterations: int,
-                         traces: list[list[np.ndarray]] | None = None):
+                         traces: list[list[np.ndarray]] | None = None, state=None):
     """Robust (IRLS) Levenberg-Marquardt on a batch of (B, P) parameter vectors (see
-    :func:`_residuals`) at once. Returns (params (B, P), robust cost (B,)); appends every
+    :func:`_residuals`) at once. ``state``: (residuals, Jacobian, cost) at ``params`` when
+    already known. Returns (params (B, P), robust cost (B,), final state); appends every
     candidate's iterated angles (n, 3) to ``traces[b]``."""
     params = np.array(params, float)
     B, N = params.shape
     na = 3 * chain.n
     diag = np.arange(N)
-    r, J, cost = _residuals(chain, fields, params, True)
+    r, J, cost = _residuals(chain, fields, params, True) if state is None else (s.copy() for s in state)
     mu = np.full(B, 1e-3)
     active = np.arange(B)
     for _ in range(iterations):
@@ -533,7 +539,7 @@ def _levenberg_marquardt(chain: _Chain, fields: list[_Field], params: np.ndarray
         active = active[~done]
         if active.size == 0:
             break
-    return params, cost
+    return params, cost, (r, J, cost)
 
 
 # --------------------------------------------------------------------------- global stage
@@ -546,14 +552,20 @@ def _diverse(order: np.ndarray, ends: np.ndarray, count: int) -> np.ndarray:
     if DIVERSE_M <= 0 or len(order) <= count:
         return order[:count]
     e = ends[order].reshape(len(order), -1, 3)
-    d = np.max(np.linalg.norm(e[:, None] - e[None, :], axis=-1), axis=-1)
-    close = d < DIVERSE_M
-    kept = np.zeros(len(order), bool)
+    diff = e[:, None] - e[None, :]
+    d2 = np.einsum("abpk,abpk->abp", diff, diff).max(axis=-1)
+    # Greedy pick over bitsets of the "too close" relation (rows as Python ints): far
+    # cheaper than a NumPy reduction per candidate.
+    close = np.packbits(d2 < DIVERSE_M * DIVERSE_M, axis=1, bitorder="little")
+    kept_bits, picked = 0, []
     for k in range(len(order)):
-        if not np.any(close[k] & kept):
-            kept[k] = True
-            if kept.sum() == count:
+        if not int.from_bytes(close[k].tobytes(), "little") & kept_bits:
+            kept_bits |= 1 << k
+            picked.append(k)
+            if len(picked) == count:
                 break
+    kept = np.zeros(len(order), bool)
+    kept[picked] = True
     chosen = order[kept]
     if len(chosen) < count:
         # Fill up with the best of the suppressed ones.
@@ -648,12 +660,14 @@ def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_
     params = starts.reshape(len(starts), -1)
     if SHIFTS:
         params = np.concatenate([params, np.zeros((len(params), 2 * len(fields)))], axis=1)
-    params, cost = _levenberg_marquardt(chain, fields, params, LM_SCREEN, traces)
+    params, cost, (r, J, _) = _levenberg_marquardt(chain, fields, params, LM_SCREEN, traces)
     # Screened by the robust cost (ranking all by eq. 11 was measured no better on the
     # samples and worse on sim captures); the silhouette cost (eq. 11) picks the winner.
+    # The screen's residuals carry over: no re-evaluation at the kept candidates.
     keep = np.argsort(cost)[:REFINE]
     sub_traces = [traces[k] for k in keep]
-    params, _ = _levenberg_marquardt(chain, fields, params[keep], LM_ITERATIONS, sub_traces)
+    params, _, _ = _levenberg_marquardt(chain, fields, params[keep], LM_ITERATIONS, sub_traces,
+                                        (r[keep], J[keep], cost[keep]))
     refined = params[:, :3 * chain.n].reshape(-1, chain.n, 3)
     costs = silhouette_costs(refined)
     best = int(np.argmin(costs))
