@@ -34,7 +34,7 @@ from .capture import Capture, View
 from .errors import EstimateError
 from .geometry import Camera, _distort
 from .result import Estimate
-from .silhouette import CostEvaluator, ViewTarget, combine, make_target
+from .silhouette import CostEvaluator, ViewTarget, combine, make_target, project_quads
 from .tape import TapeSpec, forward_kinematics, joint_rotations
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -718,6 +718,23 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     return angles, trace, evaluator.evaluations
 
 
+def _cost_roi(view: View, quads: np.ndarray) -> tuple[int, int, int, int] | None:
+    """The smallest image rectangle (x0, y0, x1, y1) holding both the observed mask and the
+    model's quads (m, 4, 3) in ``view``: every pixel outside it is background in both, so
+    the cost there equals the full image's and renders far fewer pixels. None (the whole
+    image) when the model does not project to finite pixels."""
+    px = project_quads(view.camera, quads).reshape(-1, 2)
+    if not np.all(np.isfinite(px)):
+        return None
+    x, y, w, h = cv2.boundingRect(view.mask.view(np.uint8))
+    cam = view.camera
+    lo = np.floor(px.min(axis=0)).astype(int) - 2
+    hi = np.ceil(px.max(axis=0)).astype(int) + 3
+    x0, y0 = max(0, min(x, lo[0])), max(0, min(y, lo[1]))
+    x1, y1 = min(cam.width, max(x + w, hi[0])), min(cam.height, max(y + h, hi[1]))
+    return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
+
+
 def estimate(capture: Capture, method: str = "default", callback: Callback | None = None) -> Estimate:
     """Fit the plate chain to ``capture``'s silhouettes.
 
@@ -740,9 +757,10 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     else:
         angles, history, evaluations = fit_paper(capture, callback)
     shape = forward_kinematics(capture.tape, angles)
-    full = CostEvaluator([make_target(v) for v in capture.views])
-    view_costs = full.view_costs(shape.quads())
+    quads = shape.quads()
+    view_costs = CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views]).view_costs(quads)
     elapsed = time.perf_counter() - start
+    full = CostEvaluator([make_target(v) for v in capture.views])
     if method == "default":
         # The cost per iteration on the eq.-11 scale, for recordings and plots.
         history = [full.cost(forward_kinematics(capture.tape, a).quads()) for a in trace]
