@@ -63,7 +63,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     times: dict[str, float] = {}
     doc: dict[str, Any] = {"format": "tape-episode/1", "seed": int(seed), "cameras": int(cameras),
                            "success": False, "failure": None, "tip_error_mm": None, "normal_error_deg": None}
-    stream = None
+    stream = cell = None
     if recording is not None:
         from . import recording as rec
         stream = rec.open_recording(recording, app_id="tapecell-episode",
@@ -114,9 +114,10 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             doc["tip_follow_error_mm"] = round(outcome.tip_follow_error_m * 1e3, 2)
         if outcome.detail:
             doc["detail"] = outcome.detail
-        cell.close()
         return doc
     finally:
+        if cell is not None:
+            cell.close()  # free the renderers' GL contexts, also after a refusal or an error
         doc["time_s"] = {k: round(v, 4) for k, v in times.items()}
         if stream is not None:
             rec.log_result(stream, {k: v for k, v in doc.items() if not isinstance(v, dict)})
