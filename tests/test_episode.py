@@ -124,3 +124,30 @@ def test_failures_are_blamed_on_a_stage():
     assert blame({"success": False, "failure": "missed", "tip_error_mm": 0.9}) == "execution"
     assert blame({"success": False, "failure": "unreachable", "tip_error_mm": 0.9}) == "planner"
     assert blame({"success": False, "failure": "crash"}) == "error"
+
+
+def test_episode_estimates_with_the_cameras_file_the_cell_file_names(tmp_path, capsys):
+    """[episode] cameras_file: a wrong calibration must show in the estimate."""
+    import re
+
+    import numpy as np
+
+    from estimator.capture import save_cameras
+    from estimator.geometry import rot_z
+    from sim.cell import SimCell
+    from sim.config import load_cell_config
+
+    with SimCell(load_cell_config(), seed=1, n_cameras=2, tool="gripper") as cell:
+        true = cell.cameras()
+    # cam0 turned by 1 deg about its optical axis: a calibration gone wrong
+    wrong = [true[0].with_pose(rot_z(np.radians(1.0)) @ true[0].R, true[0].t), true[1]]
+    save_cameras(wrong, tmp_path / "cams.json")
+    text, n = re.subn(r'(?m)^cameras_file = ""', 'cameras_file = "cams.json"', default_cell_path().read_text())
+    assert n == 1
+    (tmp_path / "cell.toml").write_text(text)
+    main(["episode", "--seed", "1", "--config", str(tmp_path / "cell.toml")])
+    doc = json.loads(capsys.readouterr().out)
+    main(["episode", "--seed", "1"])
+    ref = json.loads(capsys.readouterr().out)
+    assert ref["tip_error_mm"] < 1.0
+    assert doc["cost"] > ref["cost"] + 0.02 or doc["tip_error_mm"] > ref["tip_error_mm"] + 0.5
