@@ -30,6 +30,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
+from . import _kernels
 from .capture import Capture, View
 from .errors import EstimateError
 from .geometry import Camera, _distort
@@ -86,6 +87,9 @@ SMOOTH_PX = 0.0
 measured no help on sim captures, the wrong branches are chosen in the beam)."""
 ANGLE_PRIOR_PX = 1.0
 """Residual [px] per radian of every joint angle in the local stage (a weak prior)."""
+COMPILED = True
+"""Evaluate the hot loops with the compiled kernels of estimator/_kernels.py (numba); off:
+the NumPy reference code here (same numbers to float rounding, ~10x slower per call)."""
 
 _EDGE_T = np.array([0.25, 0.5, 0.75, 1.0])
 _TIP_T = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
@@ -429,12 +433,18 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
     na = 3 * chain.n
     angles = params[:, :na].reshape(B, chain.n, 3)
     shifts = params[:, na:].reshape(B, -1, 2) if params.shape[1] > na else None
-    pts, J = chain.points(angles, jacobian)
     ns = chain.samples
     rs, js = [], []
     cost = np.zeros(B)
     centre = ~chain.edge
-    for k, f in enumerate(fields):
+    # Compiled per-view terms (estimator/_kernels.py) unless view shifts are fitted; the
+    # NumPy loop below is their reference (tests/test_estimator_kernels.py).
+    compiled = COMPILED and shifts is None
+    if compiled:
+        rs, js, cost = _kernels.view_terms(chain, fields, angles, jacobian, DELTA_OUT_PX, DELTA_IN_PX)
+    else:
+        pts, J = chain.points(angles, jacobian)
+    for k, f in enumerate(() if compiled else fields):
         u, v, x, y, z = _project(f.camera, pts)
         if shifts is not None:
             u = u + shifts[:, k, 0, None]
@@ -751,6 +761,8 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         raise EstimateError(f"unknown estimation method {method!r} (use 'default' or 'paper')")
     if not capture.views:
         raise EstimateError(f"{capture.name}: no camera views to fit")
+    if method == "default" and COMPILED:
+        _kernels.warm()  # once per process: compiling/loading the kernels is not fitting
     start = time.perf_counter()
     if method == "default":
         angles, trace, evaluations = fit_default(capture)

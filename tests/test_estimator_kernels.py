@@ -1,0 +1,63 @@
+"""The compiled kernels (estimator/_kernels.py) against the NumPy reference in fit.py."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimator import _kernels, fit
+from estimator.synthetic import SyntheticOptions, make_capture
+
+
+@pytest.fixture(scope="module", params=[(21, False), (22, True)], ids=["plain", "occluded-distorted"])
+def prepared(request):
+    seed, hard = request.param
+    c = make_capture(seed, SyntheticOptions(kind="strip", cameras=3, noise=hard, occluder=hard, distortion=hard))
+    fields = [fit._prepare(v) for v in c.views]
+    assert any(f.has_ignore for f in fields) == hard
+    assert any(f.camera.has_distortion for f in fields) == hard
+    return fit._Chain(c.tape), fields
+
+
+def _relative(a, b):
+    return float(np.max(np.abs(a - b)) / max(1e-300, np.max(np.abs(b))))
+
+
+def test_lookup_reproduces_cv2_remap_exactly(prepared):
+    _, fields = prepared
+    rng = np.random.default_rng(0)
+    for f in fields:
+        h, w = f.field.shape[:2]
+        u = rng.uniform(f.x0 - 15, f.x0 + w + 15, 3000)
+        v = rng.uniform(f.y0 - 15, f.y0 + h + 15, 3000)
+        u[:300] = np.round(u[:300])          # on pixel centres and the ROI's last row/column
+        v[:100] = f.y0 + h - 1
+        sdf, gx, gy, ignored = fit._lookup(f, u, v)
+        k_sdf, k_gx, k_gy, k_ignored = _kernels.lookup(f.field, f.x0, f.y0, f.has_ignore, u, v)
+        assert np.array_equal(k_sdf, sdf) and np.array_equal(k_gx, gx) and np.array_equal(k_gy, gy)
+        assert np.array_equal(k_ignored, ignored if ignored is not None else np.zeros_like(k_ignored))
+
+
+def test_chain_points_and_jacobian_match(prepared):
+    chain, _ = prepared
+    angles = np.random.default_rng(1).normal(scale=0.6, size=(6, chain.n, 3))
+    pts, J = chain.points(angles, True)
+    k_pts, k_J = _kernels.points(chain, angles, True)
+    assert _relative(k_pts, pts) < 1e-12 and _relative(k_J, J) < 1e-12
+    assert _kernels.points(chain, angles, False)[1] is None
+
+
+def test_residuals_and_jacobian_match_reference(prepared, monkeypatch):
+    chain, fields = prepared
+    rng = np.random.default_rng(2)
+    # Near the straight chain (most samples on the tape) and far from it (most outside).
+    for scale in (0.1, 0.8):
+        params = rng.normal(scale=scale, size=(5, 3 * chain.n))
+        r, J, cost = fit._residuals(chain, fields, params, True)
+        r0, _, cost0 = fit._residuals(chain, fields, params, False)
+        monkeypatch.setattr(fit, "COMPILED", False)
+        ref_r, ref_J, ref_cost = fit._residuals(chain, fields, params, True)
+        monkeypatch.setattr(fit, "COMPILED", True)
+        assert r.shape == ref_r.shape and J.shape == ref_J.shape
+        assert _relative(r, ref_r) < 1e-9 and _relative(J, ref_J) < 1e-9
+        assert np.allclose(cost, ref_cost, rtol=1e-12, atol=0)
+        assert np.array_equal(r0, r) and np.array_equal(cost0, cost)
