@@ -94,6 +94,16 @@ def _fma32(x, y, z):
 
 
 @njit(cache=True, fastmath=False, inline="always")
+def _lerp2(field, sx, sy, sx1, sy1, a, b, c):
+    """Channel ``c`` of ``field`` interpolated between pixels (sx..sx1, sy..sy1)."""
+    p00 = field[sy, sx, c]
+    p10 = field[sy1, sx, c]
+    top = _fma32(a, field[sy, sx1, c] - p00, p00)
+    bottom = _fma32(a, field[sy1, sx1, c] - p10, p10)
+    return _fma32(b, bottom - top, top)
+
+
+@njit(cache=True, fastmath=False, inline="always")
 def _sample(field, x0, y0, has_ignore, u, v):
     """fit._lookup at one pixel: (sdf, gx, gy, ignored) with cv2.remap's bilinear maths."""
     h, w = field.shape[0], field.shape[1]
@@ -111,19 +121,15 @@ def _sample(field, x0, y0, has_ignore, u, v):
     b = yf - np.float32(sy)
     sx1 = min(sx + 1, w - 1)
     sy1 = min(sy + 1, h - 1)
-    vals = np.empty(4, np.float32)
-    nc = 4 if has_ignore else 3
-    for c in range(nc):
-        p00 = field[sy, sx, c]
-        p10 = field[sy1, sx, c]
-        top = _fma32(a, field[sy, sx1, c] - p00, p00)
-        bottom = _fma32(a, field[sy1, sx1, c] - p10, p10)
-        vals[c] = _fma32(b, bottom - top, top)
+    sdf0 = _lerp2(field, sx, sy, sx1, sy1, a, b, 0)
+    gx0 = _lerp2(field, sx, sy, sx1, sy1, a, b, 1)
+    gy0 = _lerp2(field, sx, sy, sx1, sy1, a, b, 2)
+    flag = _lerp2(field, sx, sy, sx1, sy1, a, b, 3) if has_ignore else np.float32(0.0)
     extra = abs(ox) + abs(oy)
-    sdf = np.float64(vals[0]) + extra
-    gx = np.float64(vals[1]) if ox == 0 else (1.0 if ox > 0 else -1.0)
-    gy = np.float64(vals[2]) if oy == 0 else (1.0 if oy > 0 else -1.0)
-    ignored = has_ignore and vals[3] > 0.5 and not extra > 0
+    sdf = np.float64(sdf0) + extra
+    gx = np.float64(gx0) if ox == 0 else (1.0 if ox > 0 else -1.0)
+    gy = np.float64(gy0) if oy == 0 else (1.0 if oy > 0 else -1.0)
+    ignored = has_ignore and flag > 0.5 and not extra > 0
     return sdf, gx, gy, ignored
 
 
@@ -495,3 +501,20 @@ def warm() -> float:
     lookup(field, 0, 0, True, np.zeros(2), np.zeros(2))
     _warm = True
     return time.perf_counter() - start
+
+
+def beam_edge_cost(field, pts: np.ndarray, edge_count: int, delta_out: float, delta_in: float) -> np.ndarray:
+    """Compiled beam score of one view (see :func:`edge_cost`): (..., s, 3) candidate
+    sample points -> (...) summed robust losses."""
+    lead = pts.shape[:-2]
+    flat = np.ascontiguousarray(pts, float).reshape(-1, pts.shape[-2], 3)
+    out = edge_cost(flat, edge_count, camera_params(field.camera), field.field, field.x0, field.y0,
+                    field.has_ignore, delta_out, delta_in)
+    return out.reshape(lead)
+
+
+def beam_outline_cost(field, corners: np.ndarray, segments: np.ndarray, obs: np.ndarray,
+                      delta_out: float) -> np.ndarray:
+    """Compiled coverage score of complete chains in one view (see :func:`outline_cost`)."""
+    return outline_cost(np.ascontiguousarray(corners, float), np.ascontiguousarray(segments, np.int64),
+                        camera_params(field.camera), np.ascontiguousarray(obs, float), delta_out)

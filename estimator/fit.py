@@ -615,6 +615,9 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
         is_edge = np.arange(pts.shape[2]) < edge_count
         plate = np.zeros(pts.shape[:2])
         for f in fields:
+            if COMPILED:
+                plate += _kernels.beam_edge_cost(f, pts, edge_count, DELTA_OUT_PX, DELTA_IN_PX)
+                continue
             u, v, *_ = _project(f.camera, pts)
             sdf, _, _, ignored = _lookup(f, u, v)
             r = np.where(is_edge, sdf, np.maximum(sdf, 0.0))
@@ -643,8 +646,11 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
     for f in fields:
         if len(f.outline) == 0:
             continue
-        u, v, *_ = _project(f.camera, corners)                          # (c, 2m)
         obs = f.outline[::BEAM_OUTLINE_STEP]
+        if COMPILED:
+            scores = scores + BEAM_OUTLINE_STEP * _kernels.beam_outline_cost(f, corners, seg, obs, DELTA_OUT_PX)
+            continue
+        u, v, *_ = _project(f.camera, corners)                          # (c, 2m)
         ax, ay = u[:, seg[:, 0]], v[:, seg[:, 0]]                       # (c, S)
         bx, by = u[:, seg[:, 1]] - ax, v[:, seg[:, 1]] - ay
         den = np.maximum(bx * bx + by * by, 1e-9)[:, None]

@@ -61,3 +61,37 @@ def test_residuals_and_jacobian_match_reference(prepared, monkeypatch):
         assert _relative(r, ref_r) < 1e-9 and _relative(J, ref_J) < 1e-9
         assert np.allclose(cost, ref_cost, rtol=1e-12, atol=0)
         assert np.array_equal(r0, r) and np.array_equal(cost0, cost)
+
+
+def test_beam_scores_match_reference(prepared, monkeypatch):
+    chain, fields = prepared
+    spec = chain.spec
+    rng = np.random.default_rng(3)
+    grid = fit._angle_grid([-0.6, 0.0, 0.6], [-0.8, 0.0, 0.8], [0.0])
+    compiled = fit._beam_search(spec, fields, grid, 4)
+    monkeypatch.setattr(fit, "COMPILED", False)
+    reference = fit._beam_search(spec, fields, grid, 4)
+    assert len(compiled) == len(reference) == 4
+    assert all(np.array_equal(a, b) for a, b in zip(compiled, reference))
+    # the scores themselves, on random candidates' points and corners
+    pts = spec.base_position + rng.normal(scale=0.03, size=(2, 7, 13, 3))
+    for f in fields:
+        u, v, *_ = fit._project(f.camera, pts)
+        sdf, _, _, ignored = fit._lookup(f, u, v)
+        is_edge = np.arange(13) < 8
+        rho, _ = fit._robust(np.where(is_edge, sdf, np.maximum(sdf, 0.0)), is_edge & (sdf < 0))
+        if ignored is not None:
+            rho = np.where(ignored, 0.0, rho)
+        got = _kernels.beam_edge_cost(f, pts, 8, fit.DELTA_OUT_PX, fit.DELTA_IN_PX)
+        assert np.allclose(got, rho.sum(axis=2), rtol=1e-12, atol=0)
+        corners = pts[0, :, :12]
+        seg = np.array([(k, k + 1) for k in range(11)])
+        cu, cv, *_ = fit._project(f.camera, corners)
+        ax, ay = cu[:, seg[:, 0]], cv[:, seg[:, 0]]
+        bx, by = cu[:, seg[:, 1]] - ax, cv[:, seg[:, 1]] - ay
+        rx = f.outline[None, :, 0, None] - ax[:, None]
+        ry = f.outline[None, :, 1, None] - ay[:, None]
+        t = np.clip((rx * bx[:, None] + ry * by[:, None]) / np.maximum(bx * bx + by * by, 1e-9)[:, None], 0.0, 1.0)
+        d = np.sqrt(np.min((rx - t * bx[:, None]) ** 2 + (ry - t * by[:, None]) ** 2, axis=2))
+        got = _kernels.beam_outline_cost(f, corners, seg, f.outline, fit.DELTA_OUT_PX)
+        assert np.allclose(got, fit._huber(d)[0].sum(axis=1), rtol=1e-12, atol=0)
