@@ -87,6 +87,9 @@ SMOOTH_PX = 0.0
 measured no help on sim captures, the wrong branches are chosen in the beam)."""
 ANGLE_PRIOR_PX = 1.0
 """Residual [px] per radian of every joint angle in the local stage (a weak prior)."""
+THIN_PX = 15.0
+"""A view whose silhouette is on average thinner than this [px] (2 area / perimeter) has
+its robust terms weighted by (thickness / THIN_PX)^2 (0: off)."""
 COMPILED = True
 """Evaluate the hot loops with the compiled kernels of estimator/_kernels.py (numba); off:
 the NumPy reference code here (same numbers to float rounding, ~10x slower per call)."""
@@ -118,7 +121,8 @@ class _Field:
     signed distance to the observed boundary [px] (negative inside), its x/y gradient and,
     only with an ignore mask, 1 where the pixel is ignored (else (h, w, 3)); has_ignore: whether the view has an ignore mask;
     target: the cleaned mask as a :class:`ViewTarget` for the silhouette cost;
-    outline: (P, 2) points on the observed outline [px, full image].
+    outline: (P, 2) points on the observed outline [px, full image];
+    weight: factor on this view's robust terms (see :func:`_view_weight`).
     """
 
     camera: Camera
@@ -128,6 +132,7 @@ class _Field:
     has_ignore: bool
     target: ViewTarget
     outline: np.ndarray
+    weight: float = 1.0
 
 
 def _drop_small(m: np.ndarray, connectivity: int) -> np.ndarray:
@@ -197,7 +202,21 @@ def _prepare(view: View) -> _Field:
     observed = roi if valid is None else roi & valid
     target = ViewTarget(cam, x0, y0, np.ascontiguousarray(observed), valid,
                         max(1.0, float(cv2.countNonZero(observed))))
-    return _Field(cam, x0, y0, field, ignore is not None, target, _outline(roi, ignore, x0, y0))
+    return _Field(cam, x0, y0, field, ignore is not None, target, _outline(roi, ignore, x0, y0),
+                  _view_weight(roi))
+
+
+def _view_weight(roi: np.ndarray) -> float:
+    """Factor on a view's robust terms: 1, less for a very thin silhouette (the tape seen
+    nearly edge-on). There a pixel of segmentation or calibration error moves the boundary
+    across the whole band, so the edge terms of the right shape land outside and that one
+    view would outvote the others (measured: sim edge-on captures)."""
+    if THIN_PX <= 0:
+        return 1.0
+    contours, _ = cv2.findContours(roi, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    perimeter = sum(cv2.arcLength(c, True) for c in contours)
+    thickness = 2.0 * float(cv2.countNonZero(roi)) / max(perimeter, 1.0)   # mean width [px]
+    return min(1.0, thickness / THIN_PX) ** 2
 
 
 def _outline(roi: np.ndarray, ignore: np.ndarray | None, x0: int, y0: int) -> np.ndarray:
@@ -441,7 +460,7 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
     # NumPy loop below is their reference (tests/test_estimator_kernels.py).
     compiled = COMPILED and shifts is None
     if compiled:
-        rs, js, cost = _kernels.view_terms(chain, fields, angles, jacobian, DELTA_OUT_PX, DELTA_IN_PX)
+        rs, js, cost = _compiled_view_terms(chain, fields, angles, jacobian)
     else:
         pts, J = chain.points(angles, jacobian)
     for k, f in enumerate(() if compiled else fields):
@@ -451,16 +470,19 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
             v = v + shifts[:, k, 1, None]
         Juv = _pixel_jacobian(f.camera, x, y, z, J) if jacobian else None
         c_cost, c_r, c_j = _coverage(chain, f, u[:, ns:], v[:, ns:], None if Juv is None else Juv[:, ns:])
-        cost += c_cost
-        rs.append(c_r)
+        vw = np.sqrt(f.weight)
+        cost += f.weight * c_cost
+        rs.append(vw * c_r)
+        if c_j is not None:
+            c_j = vw * c_j
         sdf, gx, gy, ignored = _lookup(f, u[:, :ns], v[:, :ns])
         r = np.where(centre, np.maximum(sdf, 0.0), sdf)
         rho, w = _robust(r, chain.edge & (sdf < 0))
         if ignored is not None:
             rho = np.where(ignored, 0.0, rho)
             w = np.where(ignored, 0.0, w)
-        cost += (rho * chain.weight ** 2).sum(axis=1)
-        sw = np.sqrt(w) * chain.weight
+        cost += f.weight * (rho * chain.weight ** 2).sum(axis=1)
+        sw = np.sqrt(w) * chain.weight * vw
         rs.append(sw * r)
         if jacobian:
             sw = np.where(centre & (sdf <= 0), 0.0, sw)
@@ -498,6 +520,21 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
         return r, None, cost
     js.append(np.broadcast_to(prior_J, (B,) + prior_J.shape))
     return r, np.concatenate(js, axis=1), cost
+
+
+def _compiled_view_terms(chain: _Chain, fields: list[_Field], angles: np.ndarray, jacobian: bool):
+    """:func:`_kernels.view_terms` with each view's terms scaled by its weight (one call per
+    view only when a view is down-weighted)."""
+    if all(f.weight == 1.0 for f in fields):
+        return _kernels.view_terms(chain, fields, angles, jacobian, DELTA_OUT_PX, DELTA_IN_PX)
+    rs, js, cost = [], [], np.zeros(len(angles))
+    for f in fields:
+        (r,), j, c = _kernels.view_terms(chain, [f], angles, jacobian, DELTA_OUT_PX, DELTA_IN_PX)
+        w = np.sqrt(f.weight)
+        rs.append(w * r)
+        js += [w * jj for jj in j]
+        cost += f.weight * c
+    return rs, js, cost
 
 
 def _coverage_shift_jacobian(chain: _Chain, f: _Field, u, v) -> np.ndarray:
@@ -616,7 +653,7 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
         plate = np.zeros(pts.shape[:2])
         for f in fields:
             if COMPILED:
-                plate += _kernels.beam_edge_cost(f, pts, edge_count, DELTA_OUT_PX, DELTA_IN_PX)
+                plate += f.weight * _kernels.beam_edge_cost(f, pts, edge_count, DELTA_OUT_PX, DELTA_IN_PX)
                 continue
             u, v, *_ = _project(f.camera, pts)
             sdf, _, _, ignored = _lookup(f, u, v)
@@ -624,7 +661,7 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
             rho, _ = _robust(r, is_edge & (sdf < 0))
             if ignored is not None:
                 rho = np.where(ignored, 0.0, rho)
-            plate += rho.sum(axis=2)
+            plate += f.weight * rho.sum(axis=2)
         prior = ANGLE_PRIOR * np.sum(grid ** 2, axis=1)
         total = (scores[:, None] + plate + prior[None, :]).reshape(-1)
         last = i == n - 1
@@ -648,7 +685,8 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
             continue
         obs = f.outline[::BEAM_OUTLINE_STEP]
         if COMPILED:
-            scores = scores + BEAM_OUTLINE_STEP * _kernels.beam_outline_cost(f, corners, seg, obs, DELTA_OUT_PX)
+            scores = scores + f.weight * BEAM_OUTLINE_STEP * _kernels.beam_outline_cost(f, corners, seg, obs,
+                                                                                     DELTA_OUT_PX)
             continue
         u, v, *_ = _project(f.camera, corners)                          # (c, 2m)
         ax, ay = u[:, seg[:, 0]], v[:, seg[:, 0]]                       # (c, S)
@@ -661,7 +699,7 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
         ry -= t * by[:, None]
         d = np.sqrt(np.min(rx * rx + ry * ry, axis=2))
         rho, _ = _huber(d)
-        scores = scores + BEAM_OUTLINE_STEP * rho.sum(axis=1)
+        scores = scores + f.weight * BEAM_OUTLINE_STEP * rho.sum(axis=1)
     order = np.argsort(scores)[:beam]
     return [history[k] for k in order]
 
