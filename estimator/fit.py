@@ -60,6 +60,10 @@ DIVERSE_POOL = 2
 """Partial chains kept per node in the global stage."""
 REFINE = 3
 """Candidates refined to convergence after screening."""
+REFINE_EQ11 = 1
+"""Further screened candidates, the best by the silhouette cost (eq. 11), refined too..."""
+EQ11_RANGE = 2.0
+"""... chosen among those whose robust cost is below this multiple of the best one's."""
 LM_SCREEN = 4
 """Levenberg-Marquardt iterations every beam candidate gets before screening."""
 LM_ITERATIONS = 10
@@ -719,6 +723,14 @@ def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_
     # samples and worse on sim captures); the silhouette cost (eq. 11) picks the winner.
     # The screen's residuals carry over: no re-evaluation at the kept candidates.
     keep = np.argsort(cost)[:REFINE]
+    if REFINE_EQ11 > 0 and len(cost) > REFINE:
+        # Plus the best screened ones by the silhouette cost: where the model cannot follow
+        # the tape (a tight curl at the tip) the robust boundary cost may prefer a wrong
+        # branch that eq. 11 does not (measured on sim tip-curl captures).
+        order = np.argsort(cost)
+        rest = order[REFINE:][cost[order[REFINE:]] < EQ11_RANGE * cost[order[0]]]
+        eq11 = silhouette_costs(params[rest, :3 * chain.n].reshape(-1, chain.n, 3))
+        keep = np.concatenate([keep, rest[np.argsort(eq11)[:REFINE_EQ11]]]) if len(rest) else keep
     sub_traces = [traces[k] for k in keep]
     params, _, _ = _levenberg_marquardt(chain, fields, params[keep], LM_ITERATIONS, sub_traces,
                                         (r[keep], J[keep], cost[keep]))
