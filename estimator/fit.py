@@ -69,11 +69,6 @@ LM_SCREEN = 4
 LM_ITERATIONS = 10
 TIP_WEIGHT = 1.0
 """Weight of the residuals on the last plate's edges and the tip edge (others 1)."""
-SHIFTS = False
-"""Fit a 2-D image shift per view along with the angles (miscalibration). Off: measured
-worse (occluded views drift, unseen tip p90 1.5 -> 2.6 mm) and no help on calib-00/02."""
-SHIFT_PRIOR = 0.3
-"""Residual [px] per px of view shift (a weak prior)."""
 LM_RTOL = 3e-3
 """A local-stage step that lowers the robust cost by less than this fraction ends it."""
 ANGLE_PRIOR = 0.05
@@ -86,9 +81,6 @@ WIDE_VARIANTS = True
 WIDE_GAIN = 0.85
 """The wide search's result replaces the first when its eq.-11 cost is below this
 fraction of the first's (only a clear difference counts)."""
-SMOOTH_PX = 0.0
-"""Residual [px] per radian of bend difference between consecutive joints (0: off; 3-8
-measured no help on sim captures, the wrong branches are chosen in the beam)."""
 ANGLE_PRIOR_PX = 1.0
 """Residual [px] per radian of every joint angle in the local stage (a weak prior)."""
 THIN_PX = 15.0
@@ -449,29 +441,22 @@ def _coverage(chain: _Chain, f: _Field, u, v, Juv):
 
 def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian: bool):
     """Weighted residuals (B, R), Jacobian (B, R, P) or None, and robust cost (B,) of a
-    batch of parameter vectors (B, P): the 3n joint angles, then, when P = 3n + 2V, a 2-D
-    image shift (du, dv) [px] per view, nuisance parameters that absorb a slightly wrong
-    calibration (the fixed base anchors the chain, so a shift cannot fake a shape)."""
+    batch of parameter vectors (B, P = 3n joint angles)."""
     B = len(params)
-    na = 3 * chain.n
-    angles = params[:, :na].reshape(B, chain.n, 3)
-    shifts = params[:, na:].reshape(B, -1, 2) if params.shape[1] > na else None
+    angles = params.reshape(B, chain.n, 3)
     ns = chain.samples
     rs, js = [], []
     cost = np.zeros(B)
     centre = ~chain.edge
-    # Compiled per-view terms (estimator/_kernels.py) unless view shifts are fitted; the
-    # NumPy loop below is their reference (tests/test_estimator_kernels.py).
-    compiled = COMPILED and shifts is None
+    # Compiled per-view terms (estimator/_kernels.py); the NumPy loop below is their
+    # reference (tests/test_estimator_kernels.py).
+    compiled = COMPILED
     if compiled:
         rs, js, cost = _compiled_view_terms(chain, fields, angles, jacobian)
     else:
         pts, J = chain.points(angles, jacobian)
     for k, f in enumerate(() if compiled else fields):
         u, v, x, y, z = _project(f.camera, pts)
-        if shifts is not None:
-            u = u + shifts[:, k, 0, None]
-            v = v + shifts[:, k, 1, None]
         Juv = _pixel_jacobian(f.camera, x, y, z, J) if jacobian else None
         c_cost, c_r, c_j = _coverage(chain, f, u[:, ns:], v[:, ns:], None if Juv is None else Juv[:, ns:])
         vw = np.sqrt(f.weight)
@@ -491,31 +476,12 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
         if jacobian:
             sw = np.where(centre & (sdf <= 0), 0.0, sw)
             g = gx[..., None] * Juv[:, :ns, 0] + gy[..., None] * Juv[:, :ns, 1]     # (B, s, 3n)
-            if shifts is None:
-                js += [c_j, sw[..., None] * g]
-                continue
-            # d(residual)/d(this view's shift), zero for the other views' shifts
-            cs = _coverage_shift_jacobian(chain, f, u[:, ns:], v[:, ns:])
-            gs = np.stack([gx, gy], axis=-1) * sw[..., None]
-            blocks = []
-            for kk in range(len(fields)):
-                blocks.append((cs, gs) if kk == k else (np.zeros(cs.shape), np.zeros(gs.shape)))
-            js.append(np.concatenate([c_j] + [b[0] for b in blocks], axis=2))
-            js.append(np.concatenate([sw[..., None] * g] + [b[1] for b in blocks], axis=2))
+            js += [c_j, sw[..., None] * g]
     # A weak preference for small angles keeps the chain from drifting to extreme twists
-    # (self-crossing plates) where the silhouette barely constrains it; shifts are kept
-    # small in the same way.
-    weights = np.full(params.shape[1], ANGLE_PRIOR_PX)
-    weights[na:] = SHIFT_PRIOR
-    prior_J = np.diag(weights)
-    if SMOOTH_PX > 0:
-        # A real tape bends smoothly: consecutive joints bend alike.
-        D = np.zeros((2 * (chain.n - 1), params.shape[1]))
-        for i in range(chain.n - 1):
-            for k, ax in enumerate((1, 2)):
-                D[2 * i + k, 3 * (i + 1) + ax] = SMOOTH_PX
-                D[2 * i + k, 3 * i + ax] = -SMOOTH_PX
-        prior_J = np.concatenate([prior_J, D])
+    # (self-crossing plates) where the silhouette barely constrains it. (Measured and
+    # dropped: per-view 2-D image shifts against miscalibration, worse on occluded views;
+    # a bend-smoothness term, no help: the wrong branches are chosen in the beam.)
+    prior_J = np.diag(np.full(params.shape[1], ANGLE_PRIOR_PX))
     prior = params @ prior_J.T
     rs.append(prior)
     cost += 0.5 * np.sum(prior * prior, axis=1)
@@ -539,16 +505,6 @@ def _compiled_view_terms(chain: _Chain, fields: list[_Field], angles: np.ndarray
         js += [w * jj for jj in j]
         cost += f.weight * c
     return rs, js, cost
-
-
-def _coverage_shift_jacobian(chain: _Chain, f: _Field, u, v) -> np.ndarray:
-    """(B, P, 2) d(coverage residual)/d(view shift): moving the whole model outline by
-    (du, dv) changes each outline point's distance by -n . (du, dv)."""
-    ones = np.zeros(u.shape + (2, 2))
-    ones[..., 0, 0] = 1.0
-    ones[..., 1, 1] = 1.0
-    _, _, j = _coverage(chain, f, u, v, ones)
-    return j
 
 
 def _levenberg_marquardt(chain: _Chain, fields: list[_Field], params: np.ndarray, iterations: int,
@@ -716,8 +672,6 @@ def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_
     11). Returns (angles (n, 3), trace, eq.-11 cost) of the winner."""
     traces: list[list[np.ndarray]] = [[] for _ in starts]
     params = starts.reshape(len(starts), -1)
-    if SHIFTS:
-        params = np.concatenate([params, np.zeros((len(params), 2 * len(fields)))], axis=1)
     params, cost, (r, J, _) = _levenberg_marquardt(chain, fields, params, LM_SCREEN, traces)
     # Screened by the robust cost (ranking all by eq. 11 was measured no better on the
     # samples and worse on sim captures); the silhouette cost (eq. 11) picks the winner.
