@@ -418,6 +418,96 @@ def outline_cost(corners, segments, cam, obs, delta_out):
     return out
 
 
+@njit(cache=True, fastmath=False)
+def beam_candidates(frames, nodes, grid_r, length, half, edge_t, tip_t, centre_t):
+    """fit._beam_search's candidates for one node: every kept partial chain (frames (B, 3,
+    3), end nodes (B, 3)) extended by every joint rotation grid_r (G, 3, 3) by a plate of
+    ``length`` and half-width ``half`` [m].
+
+    Returns (frames (B G, 3, 3), ends (B G, 3, 3): the new plate's end node, left and right
+    corner, sample points (B G, s, 3): left edge, right edge (edge_t), tip edge (tip_t,
+    empty but on the last plate), centre line (centre_t)), candidate b * G + g.
+    """
+    B, G = frames.shape[0], grid_r.shape[0]
+    ne, nt, nc = edge_t.size, tip_t.size, centre_t.size
+    F = np.empty((B * G, 3, 3))
+    E = np.empty((B * G, 3, 3))
+    pts = np.empty((B * G, 2 * ne + nt + nc, 3))
+    L0 = np.empty(3)
+    R0 = np.empty(3)
+    for b in range(B):
+        for r in range(3):
+            L0[r] = nodes[b, r] + half * frames[b, r, 1]
+            R0[r] = nodes[b, r] - half * frames[b, r, 1]
+        for g in range(G):
+            c = b * G + g
+            for i in range(3):
+                for k in range(3):
+                    F[c, i, k] = (frames[b, i, 0] * grid_r[g, 0, k] + frames[b, i, 1] * grid_r[g, 1, k]
+                                  + frames[b, i, 2] * grid_r[g, 2, k])
+            for r in range(3):
+                p = nodes[b, r] + length * F[c, r, 0]
+                left = p + half * F[c, r, 1]
+                right = p - half * F[c, r, 1]
+                E[c, 0, r] = p
+                E[c, 1, r] = left
+                E[c, 2, r] = right
+                for q in range(ne):
+                    pts[c, q, r] = L0[r] + (left - L0[r]) * edge_t[q]
+                    pts[c, ne + q, r] = R0[r] + (right - R0[r]) * edge_t[q]
+                for q in range(nt):
+                    pts[c, 2 * ne + q, r] = left + (right - left) * tip_t[q]
+                for q in range(nc):
+                    pts[c, 2 * ne + nt + q, r] = nodes[b, r] + (p - nodes[b, r]) * centre_t[q]
+    return F, E, pts
+
+
+@njit(cache=True, fastmath=False)
+def diverse(order, ends, count, min_dist):
+    """fit._diverse: up to ``count`` of the candidates ``order`` (best first) whose ends
+    (N, 3, 3) lie at least ``min_dist`` from every better kept one's (each of the three
+    points' squared distance summed as NumPy's einsum does), filled up with the best of
+    the suppressed ones."""
+    n = order.size
+    thr = min_dist * min_dist
+    kept = np.zeros(n, np.bool_)
+    picked = np.empty(count, np.int64)
+    npicked = 0
+    for k in range(n):
+        a = order[k]
+        free = True
+        for j in range(npicked):
+            bb = picked[j]
+            d2 = 0.0
+            for p in range(3):
+                dx = ends[a, p, 0] - ends[bb, p, 0]
+                dy = ends[a, p, 1] - ends[bb, p, 1]
+                dz = ends[a, p, 2] - ends[bb, p, 2]
+                d2 = max(d2, (dx * dx + dz * dz) + dy * dy)
+            if d2 < thr:
+                free = False
+                break
+        if free:
+            kept[k] = True
+            picked[npicked] = a
+            npicked += 1
+            if npicked == count:
+                break
+    out = np.empty(min(count, n), np.int64)
+    m = 0
+    for k in range(n):
+        if kept[k]:
+            out[m] = order[k]
+            m += 1
+    for k in range(n):
+        if m == out.size:
+            break
+        if not kept[k]:
+            out[m] = order[k]
+            m += 1
+    return out
+
+
 # --------------------------------------------------------------------------- wrappers
 
 _chain_cache: "weakref.WeakKeyDictionary[object, tuple]" = weakref.WeakKeyDictionary()
@@ -499,6 +589,9 @@ def warm() -> float:
     edge_cost(pts, 1, cam, field, 0, 0, True, 3.0, 1.5)
     outline_cost(pts, segments, cam, np.zeros((2, 2)), 3.0)
     lookup(field, 0, 0, True, np.zeros(2), np.zeros(2))
+    t = np.array([0.5])
+    F, E, _ = beam_candidates(np.eye(3)[None], np.zeros((1, 3)), np.eye(3)[None], 0.01, 0.005, t, t, t)
+    diverse(np.arange(1), E, 1, 0.001)
     _warm = True
     return time.perf_counter() - start
 

@@ -558,6 +558,8 @@ def _diverse(order: np.ndarray, ends: np.ndarray, count: int) -> np.ndarray:
     (twist variants of the same bends) and the other bend branch is lost."""
     if DIVERSE_M <= 0 or len(order) <= count:
         return order[:count]
+    if COMPILED:
+        return _kernels.diverse(order, ends, count, DIVERSE_M)
     e = ends[order].reshape(len(order), -1, 3)
     diff = e[:, None] - e[None, :]
     d2 = np.einsum("abpk,abpk->abp", diff, diff).max(axis=-1)
@@ -580,6 +582,29 @@ def _diverse(order: np.ndarray, ends: np.ndarray, count: int) -> np.ndarray:
     return chosen
 
 
+def _beam_candidates(frames: np.ndarray, nodes: np.ndarray, grid_r: np.ndarray, length: float, h: float,
+                     last: bool):
+    """Kept partial chains (frames (b, 3, 3), end nodes (b, 3)) extended by every joint
+    rotation of ``grid_r`` (g, 3, 3) by a plate of ``length`` and half-width ``h`` [m]:
+    (frames (b, g, 3, 3), ends (b, g, 3, 3): the plate's end node, left and right corner,
+    sample points (b, g, s, 3): edges, on the last plate the tip edge, centre line).
+    The NumPy reference of :func:`_kernels.beam_candidates`."""
+    F = np.einsum("bij,gjk->bgik", frames, grid_r)               # (b, g, 3, 3)
+    P = nodes[:, None, :] + length * F[..., :, 0]
+    L0 = (nodes + h * frames[:, :, 1])[:, None, None, :]
+    R0 = (nodes - h * frames[:, :, 1])[:, None, None, :]
+    L1 = (P + h * F[..., :, 1])[:, :, None, :]
+    R1 = (P - h * F[..., :, 1])[:, :, None, :]
+    t = _BEAM_EDGE_T[None, None, :, None]
+    parts = [L0 + (L1 - L0) * t, R0 + (R1 - R0) * t]
+    if last:
+        parts.append(L1 + (R1 - L1) * _TIP_T[None, None, :, None])
+    tc = _CENTRE_T[None, None, :, None]
+    parts.append(nodes[:, None, None, :] + (P[:, :, None, :] - nodes[:, None, None, :]) * tc)
+    ends = np.stack([P, L1[:, :, 0], R1[:, :, 0]], axis=2)
+    return F, ends, np.concatenate(parts, axis=2)
+
+
 def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
                  beam: int = BEAM) -> list[np.ndarray]:
     """Candidate chains (n, 3) from a node-by-node beam search over joint angles ``grid``
@@ -593,22 +618,17 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
     history = np.zeros((1, 0, 3))
     lefts = (nodes + h * frames[:, :, 1])[:, None, :]
     rights = (nodes - h * frames[:, :, 1])[:, None, :]
+    no_tip = np.zeros(0)
     for i in range(n):
-        F = np.einsum("bij,gjk->bgik", frames, grid_r)               # (b, g, 3, 3)
-        P = nodes[:, None, :] + spec.segment_lengths[i] * F[..., :, 0]
-        L0 = (nodes + h * frames[:, :, 1])[:, None, None, :]
-        R0 = (nodes - h * frames[:, :, 1])[:, None, None, :]
-        L1 = (P + h * F[..., :, 1])[:, :, None, :]
-        R1 = (P - h * F[..., :, 1])[:, :, None, :]
-        t = _BEAM_EDGE_T[None, None, :, None]
-        parts = [L0 + (L1 - L0) * t, R0 + (R1 - R0) * t]
-        edge_count = 2 * len(_BEAM_EDGE_T)
-        if i == n - 1:
-            parts.append(L1 + (R1 - L1) * _TIP_T[None, None, :, None])
-            edge_count += len(_TIP_T)
-        tc = _CENTRE_T[None, None, :, None]
-        parts.append(nodes[:, None, None, :] + (P[:, :, None, :] - nodes[:, None, None, :]) * tc)
-        pts = np.concatenate(parts, axis=2)                            # (b, g, s, 3)
+        last = i == n - 1
+        edge_count = 2 * len(_BEAM_EDGE_T) + (len(_TIP_T) if last else 0)
+        if COMPILED:
+            F, ends, pts = _kernels.beam_candidates(np.ascontiguousarray(frames), np.ascontiguousarray(nodes), grid_r, float(spec.segment_lengths[i]), h,
+                                                    _BEAM_EDGE_T, _TIP_T if last else no_tip, _CENTRE_T)
+            F = F.reshape(len(nodes), len(grid), 3, 3)
+            pts = pts.reshape(len(nodes), len(grid), -1, 3)
+        else:
+            F, ends, pts = _beam_candidates(frames, nodes, grid_r, spec.segment_lengths[i], h, last)
         is_edge = np.arange(pts.shape[2]) < edge_count
         plate = np.zeros(pts.shape[:2])
         for f in fields:
@@ -624,17 +644,16 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
             plate += f.weight * rho.sum(axis=2)
         prior = ANGLE_PRIOR * np.sum(grid ** 2, axis=1)
         total = (scores[:, None] + plate + prior[None, :]).reshape(-1)
-        last = i == n - 1
         count = beam * (4 if last else 1)
-        keep = _diverse(np.argsort(total)[:DIVERSE_POOL * count],
-                        np.stack([P, L1[:, :, 0], R1[:, :, 0]], axis=2).reshape(-1, 3, 3), count)
+        ends = ends.reshape(-1, 3, 3)
+        keep = _diverse(np.argsort(total)[:DIVERSE_POOL * count], ends, count)
         b, gi = np.divmod(keep, len(grid))
         frames = F[b, gi]
-        nodes = P[b, gi]
+        nodes = ends[keep, 0]
         scores = total[keep]
         history = np.concatenate([history[b], grid[gi][:, None, :]], axis=1)
-        lefts = np.concatenate([lefts[b], L1[b, gi]], axis=1)
-        rights = np.concatenate([rights[b], R1[b, gi]], axis=1)
+        lefts = np.concatenate([lefts[b], ends[keep, 1][:, None]], axis=1)
+        rights = np.concatenate([rights[b], ends[keep, 2][:, None]], axis=1)
     # Complete chains: add the coverage of the observed outline, keep the best.
     corners = np.concatenate([lefts, rights], axis=1)               # (c, 2(n+1), 3)
     m = n + 1

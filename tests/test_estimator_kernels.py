@@ -95,3 +95,36 @@ def test_beam_scores_match_reference(prepared, monkeypatch):
         d = np.sqrt(np.min((rx - t * bx[:, None]) ** 2 + (ry - t * by[:, None]) ** 2, axis=2))
         got = _kernels.beam_outline_cost(f, corners, seg, f.outline, fit.DELTA_OUT_PX)
         assert np.allclose(got, fit._huber(d)[0].sum(axis=1), rtol=1e-12, atol=0)
+
+
+def test_beam_candidates_match_reference(prepared):
+    chain, _ = prepared
+    spec = chain.spec
+    rng = np.random.default_rng(4)
+    grid = fit._angle_grid([-0.8, 0.0, 0.4], [-1.2, 0.3, 1.2], [-0.4, 0.0])
+    grid_r = fit.joint_rotations(grid)
+    frames = fit.joint_rotations(rng.normal(scale=0.7, size=(5, 3))) @ spec.base_rotation
+    nodes = spec.base_position + rng.normal(scale=0.02, size=(5, 3))
+    for last in (False, True):
+        F, ends, pts = fit._beam_candidates(frames, nodes, grid_r, 0.013, 0.004, last)
+        tip = fit._TIP_T if last else np.zeros(0)
+        kF, kends, kpts = _kernels.beam_candidates(frames, nodes, grid_r, 0.013, 0.004, fit._BEAM_EDGE_T, tip,
+                                                   fit._CENTRE_T)
+        assert np.array_equal(kF, F.reshape(-1, 3, 3))
+        assert np.array_equal(kends, ends.reshape(-1, 3, 3))
+        assert np.array_equal(kpts, pts.reshape(len(kpts), -1, 3))
+
+
+def test_diverse_matches_reference(monkeypatch):
+    rng = np.random.default_rng(5)
+    for trial in range(20):
+        # clustered ends, so that many candidates lie within DIVERSE_M of each other
+        centres = rng.normal(scale=0.01, size=(6, 3, 3))
+        ends = centres[rng.integers(0, 6, 300)] + rng.normal(scale=0.004, size=(300, 3, 3))
+        order = rng.permutation(300)[:rng.integers(5, 80)]
+        count = int(rng.integers(1, 12))
+        got = fit._diverse(order, ends, count)
+        monkeypatch.setattr(fit, "COMPILED", False)
+        ref = fit._diverse(order, ends, count)
+        monkeypatch.setattr(fit, "COMPILED", True)
+        assert np.array_equal(got, ref)
