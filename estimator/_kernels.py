@@ -358,18 +358,54 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
     return cost, res, jac
 
 
+@njit(cache=True, fastmath=False, inline="always")
+def _lerp1(img, sx, sy, sx1, sy1, a, b):
+    """_lerp2 on a single-channel image."""
+    p00 = img[sy, sx]
+    p10 = img[sy1, sx]
+    top = _fma32(a, img[sy, sx1] - p00, p00)
+    bottom = _fma32(a, img[sy1, sx1] - p10, p10)
+    return _fma32(b, bottom - top, top)
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _sample_sdf(sdf_img, flag_img, x0, y0, has_ignore, u, v):
+    """_sample without the gradient, from the field's sdf and ignore-flag planes: (sdf,
+    ignored), the same numbers."""
+    h, w = sdf_img.shape[0], sdf_img.shape[1]
+    x = u - x0
+    y = v - y0
+    xc = min(max(x, 0.0), w - 1.0)
+    yc = min(max(y, 0.0), h - 1.0)
+    ox = x - xc
+    oy = y - yc
+    xf = np.float32(xc)
+    yf = np.float32(yc)
+    sx = int(math.floor(xf))
+    sy = int(math.floor(yf))
+    a = xf - np.float32(sx)
+    b = yf - np.float32(sy)
+    sx1 = min(sx + 1, w - 1)
+    sy1 = min(sy + 1, h - 1)
+    extra = abs(ox) + abs(oy)
+    sdf = np.float64(_lerp1(sdf_img, sx, sy, sx1, sy1, a, b)) + extra
+    ignored = has_ignore and not extra > 0 and _lerp1(flag_img, sx, sy, sx1, sy1, a, b) > 0.5
+    return sdf, ignored
+
+
 @njit(cache=True, fastmath=False)
-def edge_cost(pts, n_edge, cam, field, x0, y0, has_ignore, delta_out, delta_in):
+def edge_cost(pts, n_edge, cam, sdf_img, flag_img, x0, y0, has_ignore, delta_out, delta_in):
     """Beam score of one view: (C, s, 3) candidates' sample points, the first ``n_edge``
     on plate edges (signed distance, robust), the rest on the centre line (only outside
-    counts) -> (C,) summed robust losses (ignored pixels cost nothing)."""
+    counts) -> (C,) summed robust losses (ignored pixels cost nothing). sdf_img, flag_img:
+    the field's channels 0 and 3 as (h, w) float32 planes."""
     C, s = pts.shape[0], pts.shape[1]
     out = np.empty(C)
     for c in range(C):
         total = 0.0
         for p in range(s):
             u, v, x, y, z = _project(cam, pts[c, p, 0], pts[c, p, 1], pts[c, p, 2])
-            sdf, gx, gy, ignored = _sample(field, x0, y0, has_ignore, u, v)
+            sdf, ignored = _sample_sdf(sdf_img, flag_img, x0, y0, has_ignore, u, v)
             is_edge = p < n_edge
             r = sdf if is_edge else max(sdf, 0.0)
             rho, w = _robust(r, is_edge and sdf < 0, delta_out, delta_in)
@@ -586,7 +622,7 @@ def warm() -> float:
         pts, J = chain_points(angles, *args, jac)
         view_residuals(pts, J, jac, cam, field, 0, 0, True, np.zeros((2, 2)), 1, np.ones(1, np.bool_),
                        np.ones(1), segments, 3.0, 1.5)
-    edge_cost(pts, 1, cam, field, 0, 0, True, 3.0, 1.5)
+    edge_cost(pts, 1, cam, field[:, :, 0].copy(), field[:, :, 3].copy(), 0, 0, True, 3.0, 1.5)
     outline_cost(pts, segments, cam, np.zeros((2, 2)), 3.0)
     lookup(field, 0, 0, True, np.zeros(2), np.zeros(2))
     t = np.array([0.5])
@@ -601,7 +637,7 @@ def beam_edge_cost(field, pts: np.ndarray, edge_count: int, delta_out: float, de
     sample points -> (...) summed robust losses."""
     lead = pts.shape[:-2]
     flat = np.ascontiguousarray(pts, float).reshape(-1, pts.shape[-2], 3)
-    out = edge_cost(flat, edge_count, camera_params(field.camera), field.field, field.x0, field.y0,
+    out = edge_cost(flat, edge_count, camera_params(field.camera), *field.planes, field.x0, field.y0,
                     field.has_ignore, delta_out, delta_in)
     return out.reshape(lead)
 
