@@ -544,6 +544,26 @@ def diverse(order, ends, count, min_dist):
     return out
 
 
+@njit(cache=True, fastmath=False)
+def label_areas(labels, count):
+    """np.bincount(labels.ravel(), minlength=count) of a (h, w) int32 label image."""
+    areas = np.zeros(count, np.int64)
+    for y in range(labels.shape[0]):
+        for x in range(labels.shape[1]):
+            areas[labels[y, x]] += 1
+    return areas
+
+
+@njit(cache=True, fastmath=False)
+def map_labels(labels, lut, base):
+    """(h, w) uint8 ``base | lut[labels]`` (``lut`` uint8 per label)."""
+    out = np.empty(labels.shape, np.uint8)
+    for y in range(labels.shape[0]):
+        for x in range(labels.shape[1]):
+            out[y, x] = base[y, x] | lut[labels[y, x]]
+    return out
+
+
 # --------------------------------------------------------------------------- wrappers
 
 _chain_cache: "weakref.WeakKeyDictionary[object, tuple]" = weakref.WeakKeyDictionary()
@@ -628,6 +648,8 @@ def warm() -> float:
     t = np.array([0.5])
     F, E, _ = beam_candidates(np.eye(3)[None], np.zeros((1, 3)), np.eye(3)[None], 0.01, 0.005, t, t, t)
     diverse(np.arange(1), E, 1, 0.001)
+    lab = np.zeros((2, 2), np.int32)
+    map_labels(lab, np.zeros(label_areas(lab, 1).size, np.uint8), np.zeros((2, 2), np.uint8))
     _warm = True
     return time.perf_counter() - start
 

@@ -140,10 +140,10 @@ def _drop_small(m: np.ndarray, connectivity: int) -> np.ndarray:
     count, labels = cv2.connectedComponents(m, connectivity=connectivity)
     if count <= 2:
         return m
-    areas = np.bincount(labels.ravel(), minlength=count)
+    areas = _kernels.label_areas(labels, count) if COMPILED else np.bincount(labels.ravel(), minlength=count)
     keep = np.zeros(count, np.uint8)
     keep[1:] = areas[1:] >= min(SPECKLE_PX, areas[1:].max())
-    return keep[labels]
+    return _kernels.map_labels(labels, keep, np.zeros(m.shape, np.uint8)) if COMPILED else keep[labels]
 
 
 def _clean_mask(mask: np.ndarray) -> np.ndarray:
@@ -157,9 +157,11 @@ def _fill_pinholes(m: np.ndarray) -> np.ndarray:
     count, labels = cv2.connectedComponents(inv, connectivity=4)
     if count <= 2:
         return m
-    areas = np.bincount(labels.ravel(), minlength=count)
+    areas = _kernels.label_areas(labels, count) if COMPILED else np.bincount(labels.ravel(), minlength=count)
     small = np.zeros(count, bool)
     small[1:] = areas[1:] < SPECKLE_PX
+    if COMPILED:
+        return _kernels.map_labels(labels, small.view(np.uint8), np.ascontiguousarray(m))
     out = m.copy()
     out[small[labels]] = 1
     return out

@@ -128,3 +128,15 @@ def test_diverse_matches_reference(monkeypatch):
         ref = fit._diverse(order, ends, count)
         monkeypatch.setattr(fit, "COMPILED", True)
         assert np.array_equal(got, ref)
+
+
+def test_mask_cleaning_matches_reference(monkeypatch):
+    rng = np.random.default_rng(6)
+    m = np.zeros((120, 160), np.uint8)
+    m[30:90, 20:140] = 1
+    m[rng.random(m.shape) < 0.02] ^= 1          # speckles outside, pinholes inside
+    got = fit._fill_pinholes(fit._clean_mask(m.astype(bool)))
+    monkeypatch.setattr(fit, "COMPILED", False)
+    ref = fit._fill_pinholes(fit._clean_mask(m.astype(bool)))
+    assert got.dtype == ref.dtype == np.uint8 and np.array_equal(got, ref)
+    assert 0 < int(got.sum()) < m.size and not np.array_equal(ref, m)
