@@ -104,9 +104,10 @@ def _lerp2(field, sx, sy, sx1, sy1, a, b, c):
 
 
 @njit(cache=True, fastmath=False, inline="always")
-def _sample(field, x0, y0, has_ignore, u, v):
-    """fit._lookup at one pixel: (sdf, gx, gy, ignored) with cv2.remap's bilinear maths."""
-    h, w = field.shape[0], field.shape[1]
+def _cell(h, w, x0, y0, u, v):
+    """Bilinear cell of full-image pixel (u, v) in a (h, w) ROI at (x0, y0), as cv2.remap
+    with BORDER_REPLICATE: (sx, sy, sx1, sy1, a, b) in float32 as OpenCV 5 computes them,
+    and (ox, oy), how far the point lies outside the ROI [px]."""
     x = u - x0
     y = v - y0
     xc = min(max(x, 0.0), w - 1.0)
@@ -121,6 +122,14 @@ def _sample(field, x0, y0, has_ignore, u, v):
     b = yf - np.float32(sy)
     sx1 = min(sx + 1, w - 1)
     sy1 = min(sy + 1, h - 1)
+    return sx, sy, sx1, sy1, a, b, ox, oy
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _sample(field, x0, y0, has_ignore, u, v):
+    """fit._lookup at one pixel: (sdf, gx, gy, ignored) with cv2.remap's bilinear maths."""
+    h, w = field.shape[0], field.shape[1]
+    sx, sy, sx1, sy1, a, b, ox, oy = _cell(h, w, x0, y0, u, v)
     sdf0 = _lerp2(field, sx, sy, sx1, sy1, a, b, 0)
     gx0 = _lerp2(field, sx, sy, sx1, sy1, a, b, 1)
     gy0 = _lerp2(field, sx, sy, sx1, sy1, a, b, 2)
@@ -373,20 +382,7 @@ def _sample_sdf(sdf_img, flag_img, x0, y0, has_ignore, u, v):
     """_sample without the gradient, from the field's sdf and ignore-flag planes: (sdf,
     ignored), the same numbers."""
     h, w = sdf_img.shape[0], sdf_img.shape[1]
-    x = u - x0
-    y = v - y0
-    xc = min(max(x, 0.0), w - 1.0)
-    yc = min(max(y, 0.0), h - 1.0)
-    ox = x - xc
-    oy = y - yc
-    xf = np.float32(xc)
-    yf = np.float32(yc)
-    sx = int(math.floor(xf))
-    sy = int(math.floor(yf))
-    a = xf - np.float32(sx)
-    b = yf - np.float32(sy)
-    sx1 = min(sx + 1, w - 1)
-    sy1 = min(sy + 1, h - 1)
+    sx, sy, sx1, sy1, a, b, ox, oy = _cell(h, w, x0, y0, u, v)
     extra = abs(ox) + abs(oy)
     sdf = np.float64(_lerp1(sdf_img, sx, sy, sx1, sy1, a, b)) + extra
     ignored = has_ignore and not extra > 0 and _lerp1(flag_img, sx, sy, sx1, sy1, a, b) > 0.5
