@@ -191,16 +191,14 @@ ARM_LOG_PERIOD_S = 0.05
 
 def _record_motion(cell, sim_arm, stream) -> None:
     """Log the arm (flange, joints, DH link frames) every ``ARM_LOG_PERIOD_S`` of sim time
-    while it moves, by wrapping this cell's ``step``."""
+    while it moves, through the cell's step hook."""
     from sim.ur5e import dh_frames
 
     from . import recording as rec
 
-    step = cell.step
     last = [-np.inf]
 
-    def step_and_log(n: int = 1) -> None:
-        step(n)
+    def log() -> None:
         if cell.data.time - last[0] >= ARM_LOG_PERIOD_S:
             last[0] = cell.data.time
             q = sim_arm.joints()
@@ -208,7 +206,7 @@ def _record_motion(cell, sim_arm, stream) -> None:
             rec.log_arm_state(stream, cell.data.time, frames[-1], q, link_poses=list(frames))
             rec.log_gripper(stream, cell.data.time, sim_arm.gripper_opening())
 
-    cell.step = step_and_log
+    cell.step_hook = log
 
 
 def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Path | None) -> dict[str, Any]:

@@ -6,6 +6,7 @@ here (``cameras()``); everything downstream works in OpenCV's convention.
 from __future__ import annotations
 
 import time
+from typing import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -104,6 +105,8 @@ class SimCell:
         self.rest: RestShape | None = None
         self.seed = seed
         self.timing = CaptureTiming(0.0, 0.0)
+        # Called after every step() (e.g. to record the arm while it moves); None: nothing.
+        self.step_hook: Callable[[], None] | None = None
         self.reset(seed)
 
     # ------------------------------------------------------------------ state
@@ -194,6 +197,8 @@ class SimCell:
         # mj_step leaves positions of the previous step in xpos/xmat; bring them up to date.
         mujoco.mj_kinematics(m, d)
         self.check_warnings()
+        if self.step_hook is not None:
+            self.step_hook()
 
     def check_warnings(self) -> None:
         counts = self.data.warning.number

@@ -1,8 +1,6 @@
 """The cell file's checks, the UR5e's kinematics and the simulated arm, and the sim CLI."""
 from __future__ import annotations
 
-import sim  # noqa: F401,I001  (first: sets MUJOCO_GL=egl before mujoco is imported)
-import mujoco
 import numpy as np
 import pytest
 
@@ -103,21 +101,16 @@ def test_cli_bad_cell_file_is_one_line(tmp_path, capsys):
 
 
 def test_mujoco_arm_matches_dh_at_random_joints():
-    from sim.scene import build_spec
+    from mujoco_arm import MujocoArm
 
-    model = build_spec(load_cell_config(), 2).compile()
-    data = mujoco.MjData(model)
-    qadr = [model.jnt_qposadr[model.joint(n).id] for n in
-            ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")]
-    fid = model.body("flange").id
+    arm = MujocoArm()
     rng = np.random.default_rng(1)
     for _ in range(20):
         q = rng.uniform(-np.pi, np.pi, 6)
-        data.qpos[qadr] = q
-        mujoco.mj_kinematics(model, data)
         T = dh_fk(q)
-        np.testing.assert_allclose(data.xpos[fid], T[:3, 3], atol=1e-12)
-        np.testing.assert_allclose(data.xmat[fid].reshape(3, 3), T[:3, :3], atol=1e-12)
+        F = arm.flange(q)
+        np.testing.assert_allclose(F[:3, 3], T[:3, 3], atol=1e-12)
+        np.testing.assert_allclose(F[:3, :3], T[:3, :3], atol=1e-12)
 
 
 def test_dh_zero_pose_is_the_published_one():

@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     single = len(args.captures) == 1 and args.out is None
     stream = None
     if args.rrd is not None:
-        from cell.recording import close_recording, open_recording
+        from cell.recording import close_recording, fit_logger, log_fit_result, open_recording
         stream = open_recording(args.rrd, app_id="tapecell-estimate")
     failed = 0
     try:
@@ -76,11 +76,9 @@ def run(args: argparse.Namespace) -> int:
                 capture = load_capture(path, seg)
                 callback = None
                 if stream is not None:
-                    from cell.recording import fit_logger
                     callback = fit_logger(stream, capture, prefix=None if single else name)
                 est = estimate(capture, method=args.method, callback=callback)
                 if stream is not None:
-                    from cell.recording import log_fit_result
                     log_fit_result(stream, capture, est, prefix=None if single else name)
             except TapecellError as e:
                 if single:
