@@ -573,12 +573,13 @@ def _chain_arrays(chain) -> tuple:
         M = np.asarray(chain.M, float)
         pair = np.zeros((len(M), 2), np.int64)
         pair_w = np.zeros((len(M), 2))
-        for p, row in enumerate(M):
-            nz = np.flatnonzero(row)
-            if len(nz) > 2:
-                raise ValueError("a chain sample point mixes more than two corners")
-            pair[p, : len(nz)] = nz
-            pair_w[p, : len(nz)] = row[nz]
+        rows, cols = np.nonzero(M)                    # row-major: each row's columns ascending
+        count = np.bincount(rows, minlength=len(M))
+        if np.any(count > 2):
+            raise ValueError("a chain sample point mixes more than two corners")
+        slot = np.arange(len(rows)) - np.repeat(np.cumsum(count) - count, count)
+        pair[rows, slot] = cols
+        pair_w[rows, slot] = M[rows, cols]
         spec = chain.spec
         arrays = (pair, pair_w, np.ascontiguousarray(chain.edge, np.bool_),
                   np.ascontiguousarray(chain.weight, float), np.ascontiguousarray(chain.segments, np.int64),

@@ -20,6 +20,13 @@ analytic Jacobian:
 5. Only when that cost is high (a poor fit) a wide stage runs: a finer, larger beam plus
    the other branches next to the winner (mirrored bends, flipped or quarter-turned
    twists); its result replaces the first only when its eq.-11 cost is clearly lower.
+6. Strip stage: a 30 mm plate cannot follow a tape that curls within its length, so its
+   last plate is a chord and the tip lands mm off. From the winner, a continuous strip
+   (a fine chain whose twist and bend rates vary linearly between knots at the model's
+   nodes, in-plane bending held near zero as a tape's is) is fitted on the same
+   residuals; the output plate chain is the one closest to the strip in 3-D at the
+   model's nodes, tip first. A chain that explains the views far worse than the plate
+   fit (the strip gone astray) is dropped for the plate fit.
 """
 from __future__ import annotations
 
@@ -66,7 +73,7 @@ EQ11_RANGE = 2.0
 """... chosen among those whose robust cost is below this multiple of the best one's."""
 LM_SCREEN = 4
 """Levenberg-Marquardt iterations every beam candidate gets before screening."""
-LM_ITERATIONS = 10
+LM_ITERATIONS = 6
 TIP_WEIGHT = 1.0
 """Weight of the residuals on the last plate's edges and the tip edge (others 1)."""
 LM_RTOL = 3e-3
@@ -693,6 +700,154 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
     return [history[k] for k in order]
 
 
+# --------------------------------------------------------------------------- strip stage
+
+STRIP = True
+"""After the plate chain's fit, refine a continuous strip (see :class:`_Strip`) on the same
+residuals and take the output chain from it (off: the plate chain's fit is the output)."""
+STRIP_PLATES = 4
+"""Fine plates per model plate in the strip."""
+STRIP_IN_PLANE_PX = 100.0
+"""Residual [px] per radian (per model-plate length) of in-plane bending in the strip: a
+tape barely bends within its own plane, so this stays near zero unless the views insist."""
+STRIP_ITERATIONS = 15
+STRIP_RTOL = 3e-3
+"""The strip's fit ends when a step lowers its robust cost by less than this fraction."""
+STRIP_TIP_WEIGHT = 10.0
+"""Weight of the tip's corners when the output chain is fitted to the strip in 3-D."""
+STRIP_GUARD = 2.0
+"""The chain taken from the strip is dropped when its silhouette cost (eq. 11) exceeds this
+multiple of the plate chain's own fit (a strip fit gone astray; fitted to the strip rather
+than to the images, the chain's cost is up to ~1.5x the plate fit's on good fits)."""
+
+
+class _Strip:
+    """A continuous strip as a fine chain (STRIP_PLATES plates per model plate) whose
+    joint angles (twist, out-of-plane and in-plane bend per length) vary linearly along
+    the arc length between knots at the model's nodes, after a free first joint: 3 + 3(n+1)
+    parameters. The plate chain cannot follow a tape that bends within one plate's length
+    (a curl at the tip), so its last plate is a chord: the strip follows it."""
+
+    def __init__(self, spec: TapeSpec):
+        k, n = STRIP_PLATES, spec.n
+        self.spec = spec
+        self.fine = TapeSpec(np.repeat(spec.segment_lengths / k, k), spec.width, spec.base_position,
+                             spec.base_rotation)
+        self.chain = _Chain(self.fine)
+        nf = n * k
+        basis = np.zeros((nf, n + 2))
+        basis[0, 0] = 1.0
+        s = np.arange(1, nf) / k                      # fine joints' arc length [model plates]
+        knot = np.minimum(s.astype(int), n - 1)
+        t = s - knot
+        basis[np.arange(1, nf), 1 + knot] = (1 - t) / k
+        basis[np.arange(1, nf), 2 + knot] = t / k
+        self.T = np.kron(basis, np.eye(3))            # (3 nf, P): parameters -> fine angles
+        prior = np.zeros(3 * (n + 2))
+        prior[5::3] = STRIP_IN_PLANE_PX               # in-plane rates of every knot
+        self.prior = np.diag(prior)
+
+    def angles(self, x: np.ndarray) -> np.ndarray:
+        return (self.T @ x).reshape(-1, 3)
+
+    def corners(self, x: np.ndarray, jacobian: bool):
+        """(3 m_fine, 3) corners P_C, P_L, P_R of the fine chain and their (3 m_fine, 3, P)
+        Jacobian."""
+        ns = self.chain.samples
+        a = self.angles(x)[None]
+        pts, J = _kernels.points(self.chain, a, jacobian) if COMPILED else self.chain.points(a, jacobian)
+        return pts[0, ns:], (None if J is None else J[0, ns:] @ self.T)
+
+    def residuals(self, fields: list[_Field], x: np.ndarray):
+        r, J, cost = _residuals(self.chain, fields, (self.T @ x)[None], True)
+        p = self.prior @ x
+        return np.concatenate([r[0], p]), np.vstack([J[0] @ self.T, self.prior]), cost[0] + 0.5 * p @ p
+
+
+def _gauss_newton(fun, x: np.ndarray, iterations: int, rtol: float) -> np.ndarray:
+    """Levenberg-Marquardt on one parameter vector: fun(x) -> (residuals, Jacobian, cost)."""
+    r, J, cost = fun(x)
+    mu = 1e-3
+    for _ in range(iterations):
+        A = J.T @ J
+        d = np.arange(len(x))
+        A[d, d] += mu * A[d, d] + 1e-9
+        step = np.linalg.solve(A, -(J.T @ r))
+        r2, J2, c2 = fun(x + step)
+        if c2 < cost:
+            flat = cost - c2 < rtol * cost
+            x, r, J, cost, mu = x + step, r2, J2, c2, max(mu * 0.3, 1e-7)
+            if flat:
+                break
+        else:
+            mu *= 10.0
+            if mu > 1e4:
+                break
+    return x
+
+
+def _node_corners(shape, every: int = 1) -> np.ndarray:
+    """(3 m', 3) P_C, P_L, P_R of every ``every``-th node of a shape."""
+    return np.concatenate([shape.nodes[::every], shape.left[::every], shape.right[::every]])
+
+
+_strips: dict = {}
+
+
+def _strip_for(spec: TapeSpec) -> _Strip:
+    """The strip of ``spec`` (cached: its chain's fixed arrays cost more than a fit step)."""
+    key = (spec.segment_lengths.tobytes(), float(spec.width), np.asarray(spec.base_position, float).tobytes(),
+           np.asarray(spec.base_rotation, float).tobytes())
+    strip = _strips.get(key)
+    if strip is None:
+        if len(_strips) > 16:
+            _strips.clear()
+        strip = _strips[key] = _Strip(spec)
+    return strip
+
+
+def _strip_stage(chain: _Chain, fields: list[_Field], angles: np.ndarray):
+    """The strip fitted to the views from the plate chain ``angles`` (n, 3), and the
+    plate chain fitted in 3-D to the strip (its corners at the model's nodes, the tip's
+    weighted). Returns (chain angles (n, 3), the strip's fine angles)."""
+    spec = chain.spec
+    strip = _strip_for(spec)
+    k, n = STRIP_PLATES, spec.n
+    # Start: the strip closest in 3-D to the plate chain (its corners linearly
+    # interpolated along the plates at the fine nodes).
+    shape = forward_kinematics(spec, angles)
+    t = np.arange(n * k + 1) / k
+    i = np.minimum(t.astype(int), n - 1)
+    f = (t - i)[:, None]
+    target = np.concatenate([a[i] * (1 - f) + a[i + 1] * f for a in (shape.nodes, shape.left, shape.right)])
+
+    def to_chain(x):
+        c, J = strip.corners(x, True)
+        r = (c - target).ravel()
+        return r, J.reshape(len(r), -1), 0.5 * r @ r
+
+    x0 = np.zeros(strip.T.shape[1])
+    x0[:3] = angles[0]
+    x = _gauss_newton(to_chain, x0, 20, 1e-4)
+    x = _gauss_newton(lambda y: strip.residuals(fields, y), x, STRIP_ITERATIONS, STRIP_RTOL)
+    fine = forward_kinematics(strip.fine, strip.angles(x))
+    # The output chain: the plate chain closest to the strip at the model's nodes.
+    goal = _node_corners(fine, k)
+    w = np.ones(3 * (n + 1))
+    w[[n, 2 * n + 1, 3 * n + 2]] = STRIP_TIP_WEIGHT
+
+    def to_strip(a):
+        a = a.reshape(1, n, 3)
+        pts, J = _kernels.points(chain, a, True) if COMPILED else chain.points(a, True)
+        c, Jc = pts[0, chain.samples:], J[0, chain.samples:]
+        r = (w[:, None] * (c - goal)).ravel()
+        Jr = (w[:, None, None] * Jc).reshape(len(r), -1)
+        return r, Jr, 0.5 * r @ r
+
+    out = _gauss_newton(to_strip, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
+    return out, strip.angles(x)
+
+
 # --------------------------------------------------------------------------- public
 
 def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_costs):
@@ -764,7 +919,12 @@ def fit_default(capture: Capture, callback: Callback | None = None):
         a2, t2, c2 = _refine(chain, fields, wide, silhouette_costs)
         if c2 < WIDE_GAIN * cost:
             angles, trace, cost = a2, trace + t2, c2
-    return angles, trace, evaluator.evaluations
+    fallback = None
+    if STRIP:
+        fallback = (angles, cost)
+        angles, _ = _strip_stage(chain, fields, angles)
+        trace = trace + [angles]
+    return angles, trace, evaluator.evaluations, fallback
 
 
 def _cost_roi(view: View, quads: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -782,6 +942,14 @@ def _cost_roi(view: View, quads: np.ndarray) -> tuple[int, int, int, int] | None
     x0, y0 = max(0, min(x, lo[0])), max(0, min(y, lo[1]))
     x1, y1 = min(cam.width, max(x + w, hi[0])), min(cam.height, max(y + h, hi[1]))
     return (x0, y0, x1, y1) if x1 > x0 and y1 > y0 else None
+
+
+def _costed(capture: Capture, angles: np.ndarray):
+    """The chain's shape and its per-view silhouette costs (eq. 7), rendered only where
+    the mask or the model is."""
+    shape = forward_kinematics(capture.tape, angles)
+    quads = shape.quads()
+    return shape, CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views]).view_costs(quads)
 
 
 def estimate(capture: Capture, method: str = "default", callback: Callback | None = None) -> Estimate:
@@ -803,13 +971,18 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     if method == "default" and COMPILED:
         _kernels.warm()  # once per process: compiling/loading the kernels is not fitting
     start = time.perf_counter()
+    fallback = None
     if method == "default":
-        angles, trace, evaluations = fit_default(capture)
+        angles, trace, evaluations, fallback = fit_default(capture)
     else:
         angles, history, evaluations = fit_paper(capture, callback)
-    shape = forward_kinematics(capture.tape, angles)
-    quads = shape.quads()
-    view_costs = CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views]).view_costs(quads)
+    shape, view_costs = _costed(capture, angles)
+    if fallback is not None and combine(view_costs) > STRIP_GUARD * fallback[1]:
+        # The chain taken from the strip explains the views far worse than the plate
+        # chain's own fit: the strip's fit went astray; keep the plate chain.
+        angles = fallback[0]
+        trace = trace[:-1]
+        shape, view_costs = _costed(capture, angles)
     elapsed = time.perf_counter() - start
     full = CostEvaluator([make_target(v) for v in capture.views])
     if method == "default":
