@@ -7,6 +7,11 @@ starts) to the true centre line at equal arc length, plus ``w`` times the differ
 the tip normals. The table shows the tip and normal errors reachable for each weight: the
 floor below which no silhouette fit can go, and the trade-off between following the
 centre line and matching the tip's normal (the tip frame is the last plate's, F_n).
+
+The last line is the normal's floor for any chain that follows the tape: the last plate's
+trunk is the chord between its two nodes, its normal is perpendicular to that chord, so
+with both nodes on the true centre line the normal error is at least asin(|chord . n|)
+(n: the true tip normal), whatever the twist.
 """
 from __future__ import annotations
 
@@ -51,6 +56,17 @@ def best_chain(capture: Capture, w: float) -> Errors:
     return errors(shape.nodes, shape.frames[-1], truth)
 
 
+def chord_floor_deg(capture: Capture) -> float:
+    """Least tip normal error [deg] of any chain whose last two nodes lie on the true centre
+    line at their arc lengths: the angle between the true normal and the plane normal to
+    the last chord."""
+    spec, truth = capture.tape, capture.truth
+    length = float(np.sum(spec.segment_lengths))
+    a, b = centerline_at(truth, np.array([length - spec.segment_lengths[-1], length]))
+    chord = (b - a) / np.linalg.norm(b - a)
+    return float(np.degrees(np.arcsin(min(1.0, abs(chord @ truth.tip_rotation[:, 2])))))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--captures", nargs="*", type=Path, default=[ROOT.parent / "shared" / "captures-sample"])
@@ -68,6 +84,9 @@ def main() -> int:
         nrm = np.array([x.normal_deg for x in e])
         print(f"{w:>6g}  {np.median(tip):7.2f} {np.percentile(tip, 90):7.2f} {tip.max():7.2f}  "
               f"{np.median(nrm):10.2f} {np.percentile(nrm, 90):10.2f}")
+    floor = np.array([chord_floor_deg(c) for c in captures])
+    print(f"{'chord':>6}  {0.0:7.2f} {0.0:7.2f} {0.0:7.2f}  {np.median(floor):10.2f} {np.percentile(floor, 90):10.2f}"
+          "   (last two nodes on the true centre line; best twist)")
     return 0
 
 
