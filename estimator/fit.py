@@ -375,6 +375,12 @@ class _Chain:
         node_of = np.tile(np.arange(m), 3)
         self.moves = (node_of[:, None] >= np.arange(1, m)[None, :]).astype(float)  # (3m, n)
 
+    def corners(self, angles: np.ndarray):
+        """(n, 3) angles -> the corners P_C, P_L, P_R (3m, 3) and their Jacobian (3m, 3, 3n)."""
+        a = np.asarray(angles, float).reshape(1, self.n, 3)
+        pts, J = _kernels.points(self, a, True) if COMPILED else self.points(a, True)
+        return pts[0, self.samples:], J[0, self.samples:]
+
     def points(self, angles: np.ndarray, jacobian: bool):
         """(B, n, 3) angles -> (B, s + 3m, 3) sample points then corners and, if asked,
         their (B, s + 3m, 3, 3n) Jacobian."""
@@ -730,7 +736,6 @@ class _Strip:
 
     def __init__(self, spec: TapeSpec):
         k, n = STRIP_PLATES, spec.n
-        self.spec = spec
         self.fine = TapeSpec(np.repeat(spec.segment_lengths / k, k), spec.width, spec.base_position,
                              spec.base_rotation)
         self.chain = _Chain(self.fine)
@@ -750,13 +755,10 @@ class _Strip:
     def angles(self, x: np.ndarray) -> np.ndarray:
         return (self.T @ x).reshape(-1, 3)
 
-    def corners(self, x: np.ndarray, jacobian: bool):
-        """(3 m_fine, 3) corners P_C, P_L, P_R of the fine chain and their (3 m_fine, 3, P)
-        Jacobian."""
-        ns = self.chain.samples
-        a = self.angles(x)[None]
-        pts, J = _kernels.points(self.chain, a, jacobian) if COMPILED else self.chain.points(a, jacobian)
-        return pts[0, ns:], (None if J is None else J[0, ns:] @ self.T)
+    def corners(self, x: np.ndarray):
+        """The fine chain's corners (3 m_fine, 3) and their Jacobian (3 m_fine, 3, P)."""
+        c, J = self.chain.corners(self.angles(x))
+        return c, J @ self.T
 
     def residuals(self, fields: list[_Field], x: np.ndarray):
         r, J, cost = _residuals(self.chain, fields, (self.T @ x)[None], True)
@@ -786,9 +788,17 @@ def _gauss_newton(fun, x: np.ndarray, iterations: int, rtol: float) -> np.ndarra
     return x
 
 
-def _node_corners(shape, every: int = 1) -> np.ndarray:
-    """(3 m', 3) P_C, P_L, P_R of every ``every``-th node of a shape."""
-    return np.concatenate([shape.nodes[::every], shape.left[::every], shape.right[::every]])
+def _corner_fit(corners, goal: np.ndarray, weight: np.ndarray | float = 1.0):
+    """Residual function for :func:`_gauss_newton` pulling ``corners(x)`` -> (c (k, 3), J
+    (k, 3, P)) onto ``goal`` (k, 3), each corner weighted by ``weight`` ((k,) or scalar)."""
+    w = np.broadcast_to(np.asarray(weight, float), (len(goal),))
+
+    def fun(x):
+        c, J = corners(x)
+        r = (w[:, None] * (c - goal)).ravel()
+        return r, (w[:, None, None] * J).reshape(len(r), -1), 0.5 * r @ r
+
+    return fun
 
 
 _strips: dict = {}
@@ -809,7 +819,7 @@ def _strip_for(spec: TapeSpec) -> _Strip:
 def _strip_stage(chain: _Chain, fields: list[_Field], angles: np.ndarray):
     """The strip fitted to the views from the plate chain ``angles`` (n, 3), and the
     plate chain fitted in 3-D to the strip (its corners at the model's nodes, the tip's
-    weighted). Returns (chain angles (n, 3), the strip's fine angles)."""
+    weighted). Returns the chain's angles (n, 3)."""
     spec = chain.spec
     strip = _strip_for(spec)
     k, n = STRIP_PLATES, spec.n
@@ -820,32 +830,16 @@ def _strip_stage(chain: _Chain, fields: list[_Field], angles: np.ndarray):
     i = np.minimum(t.astype(int), n - 1)
     f = (t - i)[:, None]
     target = np.concatenate([a[i] * (1 - f) + a[i + 1] * f for a in (shape.nodes, shape.left, shape.right)])
-
-    def to_chain(x):
-        c, J = strip.corners(x, True)
-        r = (c - target).ravel()
-        return r, J.reshape(len(r), -1), 0.5 * r @ r
-
     x0 = np.zeros(strip.T.shape[1])
     x0[:3] = angles[0]
-    x = _gauss_newton(to_chain, x0, 20, 1e-4)
+    x = _gauss_newton(_corner_fit(strip.corners, target), x0, 20, 1e-4)
     x = _gauss_newton(lambda y: strip.residuals(fields, y), x, STRIP_ITERATIONS, STRIP_RTOL)
     fine = forward_kinematics(strip.fine, strip.angles(x))
     # The output chain: the plate chain closest to the strip at the model's nodes.
-    goal = _node_corners(fine, k)
+    goal = np.concatenate([fine.nodes[::k], fine.left[::k], fine.right[::k]])
     w = np.ones(3 * (n + 1))
     w[[n, 2 * n + 1, 3 * n + 2]] = STRIP_TIP_WEIGHT
-
-    def to_strip(a):
-        a = a.reshape(1, n, 3)
-        pts, J = _kernels.points(chain, a, True) if COMPILED else chain.points(a, True)
-        c, Jc = pts[0, chain.samples:], J[0, chain.samples:]
-        r = (w[:, None] * (c - goal)).ravel()
-        Jr = (w[:, None, None] * Jc).reshape(len(r), -1)
-        return r, Jr, 0.5 * r @ r
-
-    out = _gauss_newton(to_strip, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
-    return out, strip.angles(x)
+    return _gauss_newton(_corner_fit(chain.corners, goal, w), angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
 
 
 # --------------------------------------------------------------------------- public
@@ -922,7 +916,7 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     fallback = None
     if STRIP:
         fallback = (angles, cost)
-        angles, _ = _strip_stage(chain, fields, angles)
+        angles = _strip_stage(chain, fields, angles)
         trace = trace + [angles]
     return angles, trace, evaluator.evaluations, fallback
 
