@@ -565,21 +565,37 @@ def map_labels(labels, lut, base):
 _chain_cache: "weakref.WeakKeyDictionary[object, tuple]" = weakref.WeakKeyDictionary()
 
 
+_pairs_cache: dict = {}
+
+
+def _pairs(M: np.ndarray) -> tuple:
+    """A chain's sample matrix M (s, 3m), at most two corners a row, as (pair (s, 2) corner
+    indices, pair_w (s, 2) weights); cached per matrix (chains of one plate count share it)."""
+    hit = _pairs_cache.get(id(M))
+    if hit is not None and hit[0] is M:
+        return hit[1], hit[2]
+    Mf = np.asarray(M, float)
+    pair = np.zeros((len(Mf), 2), np.int64)
+    pair_w = np.zeros((len(Mf), 2))
+    rows, cols = np.nonzero(Mf)                   # row-major: each row's columns ascending
+    count = np.bincount(rows, minlength=len(Mf))
+    if np.any(count > 2):
+        raise ValueError("a chain sample point mixes more than two corners")
+    slot = np.arange(len(rows)) - np.repeat(np.cumsum(count) - count, count)
+    pair[rows, slot] = cols
+    pair_w[rows, slot] = Mf[rows, cols]
+    if len(_pairs_cache) > 32:
+        _pairs_cache.clear()
+    _pairs_cache[id(M)] = (M, pair, pair_w)
+    return pair, pair_w
+
+
 def _chain_arrays(chain) -> tuple:
     """The chain's fixed arrays in kernel form: (pair, pair_w, edge, weight, segments, base
     position, base rotation, segment lengths, width); cached per chain."""
     arrays = _chain_cache.get(chain)
     if arrays is None:
-        M = np.asarray(chain.M, float)
-        pair = np.zeros((len(M), 2), np.int64)
-        pair_w = np.zeros((len(M), 2))
-        rows, cols = np.nonzero(M)                    # row-major: each row's columns ascending
-        count = np.bincount(rows, minlength=len(M))
-        if np.any(count > 2):
-            raise ValueError("a chain sample point mixes more than two corners")
-        slot = np.arange(len(rows)) - np.repeat(np.cumsum(count) - count, count)
-        pair[rows, slot] = cols
-        pair_w[rows, slot] = M[rows, cols]
+        pair, pair_w = _pairs(chain.M)
         spec = chain.spec
         arrays = (pair, pair_w, np.ascontiguousarray(chain.edge, np.bool_),
                   np.ascontiguousarray(chain.weight, float), np.ascontiguousarray(chain.segments, np.int64),

@@ -30,6 +30,8 @@ analytic Jacobian:
 """
 from __future__ import annotations
 
+import functools
+
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -192,7 +194,14 @@ def _prepare(view: View) -> _Field:
     margin = OCCLUDED_MARGIN_PX if view.ignore is not None else MARGIN_PX
     x0, y0 = max(0, bx0 - margin), max(0, by0 - margin)
     x1, y1 = min(cam.width, bx1 + margin), min(cam.height, by1 + margin)
-    roi = _fill_pinholes(_clean_mask(view.mask[y0:y1, x0:x1]))
+    roi = _clean_mask(view.mask[y0:y1, x0:x1])
+    # Speckles of a noisy mask stretch the first box over most of the image; without them
+    # the box is the tape's, and every step below works on far fewer pixels.
+    cx0, cy0, cx1, cy1 = _tape_box(roi)
+    cx0, cy0 = max(0, cx0 - margin), max(0, cy0 - margin)
+    cx1, cy1 = min(x1 - x0, cx1 + margin), min(y1 - y0, cy1 + margin)
+    roi = _fill_pinholes(np.ascontiguousarray(roi[cy0:cy1, cx0:cx1]))
+    x0, y0, x1, y1 = x0 + cx0, y0 + cy0, x0 + cx1, y0 + cy1
     ignore = None if view.ignore is None else view.ignore[y0:y1, x0:x1]
     # Unknown pixels get the benefit of the doubt: no boundary is drawn through them.
     solid = roi if ignore is None else (roi | ignore).astype(np.uint8)
@@ -329,51 +338,58 @@ def _huber(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 # --------------------------------------------------------------------------- the chain
 
+@functools.lru_cache(maxsize=16)
+def _chain_layout(n: int, tip_weight: float):
+    """The sample-point layout of an n-plate chain (see :class:`_Chain`), built once per n:
+    (M, edge, weight, segments, moves), shared: not to be written."""
+    m = n + 1
+    rows, edge = [], []
+    # corners: index k -> P_C[k], m + k -> P_L[k], 2m + k -> P_R[k]
+    for side in (1, 2):
+        for i in range(1, m):
+            for t in _EDGE_T:
+                w = np.zeros(3 * m)
+                w[side * m + i - 1] = 1 - t
+                w[side * m + i] = t
+                rows.append(w)
+                edge.append(True)
+    for t in _TIP_T:
+        w = np.zeros(3 * m)
+        w[m + n] = 1 - t
+        w[2 * m + n] = t
+        rows.append(w)
+        edge.append(True)
+    for i in range(1, m):
+        for t in _CENTRE_T:
+            w = np.zeros(3 * m)
+            w[i - 1] = 1 - t
+            w[i] = t
+            rows.append(w)
+            edge.append(False)
+    M = np.array(rows)
+    edge = np.array(edge)
+    # The tip is what the robot grasps: its plate's edges and the tip edge count more.
+    tip = M[:, [m + n, 2 * m + n]].sum(axis=1) > 0
+    weight = np.where(tip & edge, tip_weight, 1.0)
+    # silhouette outline segments as corner index pairs: left, right, tip and base edges
+    left = [(m + k, m + k + 1) for k in range(n)]
+    right = [(2 * m + k, 2 * m + k + 1) for k in range(n)]
+    segments = np.array(left + right + [(m + n, 2 * m + n), (m, 2 * m)])
+    # corner c belongs to the frame of node c % m: it moves with joints 1..c % m
+    node_of = np.tile(np.arange(m), 3)
+    moves = (node_of[:, None] >= np.arange(1, m)[None, :]).astype(float)  # (3m, n)
+    return M, edge, weight, segments, moves
+
+
 class _Chain:
     """Sample points on the chain's silhouette-relevant parts and their Jacobian, for a
     batch of B angle sets at once."""
 
     def __init__(self, spec: TapeSpec):
         self.spec = spec
-        n = spec.n
-        self.n = n
-        m = n + 1
-        rows, edge = [], []
-        # corners: index k -> P_C[k], m + k -> P_L[k], 2m + k -> P_R[k]
-        for side in (1, 2):
-            for i in range(1, m):
-                for t in _EDGE_T:
-                    w = np.zeros(3 * m)
-                    w[side * m + i - 1] = 1 - t
-                    w[side * m + i] = t
-                    rows.append(w)
-                    edge.append(True)
-        for t in _TIP_T:
-            w = np.zeros(3 * m)
-            w[m + n] = 1 - t
-            w[2 * m + n] = t
-            rows.append(w)
-            edge.append(True)
-        for i in range(1, m):
-            for t in _CENTRE_T:
-                w = np.zeros(3 * m)
-                w[i - 1] = 1 - t
-                w[i] = t
-                rows.append(w)
-                edge.append(False)
-        self.M = np.array(rows)
-        self.edge = np.array(edge)
-        # The tip is what the robot grasps: its plate's edges and the tip edge count more.
-        tip = self.M[:, [m + n, 2 * m + n]].sum(axis=1) > 0
-        self.weight = np.where(tip & self.edge, TIP_WEIGHT, 1.0)
-        self.samples = len(rows)
-        # silhouette outline segments as corner index pairs: left, right, tip and base edges
-        left = [(m + k, m + k + 1) for k in range(n)]
-        right = [(2 * m + k, 2 * m + k + 1) for k in range(n)]
-        self.segments = np.array(left + right + [(m + n, 2 * m + n), (m, 2 * m)])
-        # corner c belongs to the frame of node c % m: it moves with joints 1..c % m
-        node_of = np.tile(np.arange(m), 3)
-        self.moves = (node_of[:, None] >= np.arange(1, m)[None, :]).astype(float)  # (3m, n)
+        self.n = spec.n
+        self.M, self.edge, self.weight, self.segments, self.moves = _chain_layout(spec.n, float(TIP_WEIGHT))
+        self.samples = len(self.M)
 
     def corners(self, angles: np.ndarray):
         """(n, 3) angles -> the corners P_C, P_L, P_R (3m, 3) and their Jacobian (3m, 3, 3n)."""
@@ -735,22 +751,11 @@ class _Strip:
     (a curl at the tip), so its last plate is a chord: the strip follows it."""
 
     def __init__(self, spec: TapeSpec):
-        k, n = STRIP_PLATES, spec.n
+        k = STRIP_PLATES
         self.fine = TapeSpec(np.repeat(spec.segment_lengths / k, k), spec.width, spec.base_position,
                              spec.base_rotation)
         self.chain = _Chain(self.fine)
-        nf = n * k
-        basis = np.zeros((nf, n + 2))
-        basis[0, 0] = 1.0
-        s = np.arange(1, nf) / k                      # fine joints' arc length [model plates]
-        knot = np.minimum(s.astype(int), n - 1)
-        t = s - knot
-        basis[np.arange(1, nf), 1 + knot] = (1 - t) / k
-        basis[np.arange(1, nf), 2 + knot] = t / k
-        self.T = np.kron(basis, np.eye(3))            # (3 nf, P): parameters -> fine angles
-        prior = np.zeros(3 * (n + 2))
-        prior[5::3] = STRIP_IN_PLANE_PX               # in-plane rates of every knot
-        self.prior = np.diag(prior)
+        self.T, self.prior = _strip_layout(spec.n, k, float(STRIP_IN_PLANE_PX))
 
     def angles(self, x: np.ndarray) -> np.ndarray:
         return (self.T @ x).reshape(-1, 3)
@@ -764,6 +769,26 @@ class _Strip:
         r, J, cost = _residuals(self.chain, fields, (self.T @ x)[None], True)
         p = self.prior @ x
         return np.concatenate([r[0], p]), np.vstack([J[0] @ self.T, self.prior]), cost[0] + 0.5 * p @ p
+
+
+@functools.lru_cache(maxsize=8)
+def _strip_layout(n: int, k: int, in_plane_px: float):
+    """:class:`_Strip`'s parameter map T (3 n k, 3(n+2)) from knot rates to the fine
+    chain's angles, and its in-plane prior (3(n+2), 3(n+2)); built once per n, shared: not
+    to be written."""
+    nf = n * k
+    basis = np.zeros((nf, n + 2))
+    basis[0, 0] = 1.0
+    s = np.arange(1, nf) / k                      # fine joints' arc length [model plates]
+    knot = np.minimum(s.astype(int), n - 1)
+    t = s - knot
+    basis[np.arange(1, nf), 1 + knot] = (1 - t) / k
+    basis[np.arange(1, nf), 2 + knot] = t / k
+    T = np.kron(basis, np.eye(3))                 # (3 nf, P): parameters -> fine angles
+    prior = np.zeros(3 * (n + 2))
+    prior[5::3] = in_plane_px                     # in-plane rates of every knot
+    prior = np.diag(prior)
+    return T, prior
 
 
 def _gauss_newton(fun, x: np.ndarray, iterations: int, rtol: float) -> np.ndarray:
@@ -921,6 +946,28 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     return angles, trace, evaluator.evaluations, fallback
 
 
+_warmed = False
+
+
+def warm() -> None:
+    """Pay the default method's one-off costs of a process before any clock starts: the
+    compiled kernels (see :func:`_kernels.warm`) and OpenCV's first calls of the filters a
+    view's preparation uses (measured ~2 ms on the first fit of a process, then never)."""
+    global _warmed
+    if COMPILED:
+        _kernels.warm()
+    if _warmed:
+        return
+    _warmed = True
+    mask = np.zeros((24, 32), bool)
+    mask[8:16, 6:26] = True
+    ignore = np.zeros_like(mask)
+    ignore[:, :4] = True
+    camera = Camera("warm", 32, 24, np.array([[20.0, 0, 16], [0, 20.0, 12], [0, 0, 1]]))
+    for view in (View(camera, mask), View(camera, mask, ignore)):
+        _prepare(view)
+
+
 def _cost_roi(view: View, quads: np.ndarray) -> tuple[int, int, int, int] | None:
     """The smallest image rectangle (x0, y0, x1, y1) holding both the observed mask and the
     model's quads (m, 4, 3) in ``view``: every pixel outside it is background in both, so
@@ -962,8 +1009,8 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         raise EstimateError(f"unknown estimation method {method!r} (use 'default' or 'paper')")
     if not capture.views:
         raise EstimateError(f"{capture.name}: no camera views to fit")
-    if method == "default" and COMPILED:
-        _kernels.warm()  # once per process: compiling/loading the kernels is not fitting
+    if method == "default":
+        warm()  # once per process: compiling/loading the kernels is not fitting
     start = time.perf_counter()
     fallback = None
     if method == "default":
