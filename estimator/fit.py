@@ -339,7 +339,7 @@ def _huber(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------- the chain
 
 @functools.lru_cache(maxsize=16)
-def _chain_layout(n: int, tip_weight: float):
+def _chain_layout(n: int, tip_weight: float, edge_t: tuple, centre_t: tuple):
     """The sample-point layout of an n-plate chain (see :class:`_Chain`), built once per n:
     (M, edge, weight, segments, moves), shared: not to be written."""
     m = n + 1
@@ -347,7 +347,7 @@ def _chain_layout(n: int, tip_weight: float):
     # corners: index k -> P_C[k], m + k -> P_L[k], 2m + k -> P_R[k]
     for side in (1, 2):
         for i in range(1, m):
-            for t in _EDGE_T:
+            for t in edge_t:
                 w = np.zeros(3 * m)
                 w[side * m + i - 1] = 1 - t
                 w[side * m + i] = t
@@ -360,7 +360,7 @@ def _chain_layout(n: int, tip_weight: float):
         rows.append(w)
         edge.append(True)
     for i in range(1, m):
-        for t in _CENTRE_T:
+        for t in centre_t:
             w = np.zeros(3 * m)
             w[i - 1] = 1 - t
             w[i] = t
@@ -385,10 +385,13 @@ class _Chain:
     """Sample points on the chain's silhouette-relevant parts and their Jacobian, for a
     batch of B angle sets at once."""
 
-    def __init__(self, spec: TapeSpec):
+    def __init__(self, spec: TapeSpec, edge_t=_EDGE_T, centre_t=_CENTRE_T):
+        """edge_t, centre_t: where on each plate (fractions of its length) the edge and
+        centre-line sample points lie."""
         self.spec = spec
         self.n = spec.n
-        self.M, self.edge, self.weight, self.segments, self.moves = _chain_layout(spec.n, float(TIP_WEIGHT))
+        self.M, self.edge, self.weight, self.segments, self.moves = _chain_layout(
+            spec.n, float(TIP_WEIGHT), tuple(float(t) for t in edge_t), tuple(float(t) for t in centre_t))
         self.samples = len(self.M)
 
     def corners(self, angles: np.ndarray):
@@ -729,6 +732,9 @@ STRIP = True
 residuals and take the output chain from it (off: the plate chain's fit is the output)."""
 STRIP_PLATES = 4
 """Fine plates per model plate in the strip."""
+STRIP_EDGE_T = (1 / 3, 2 / 3, 1.0)
+STRIP_CENTRE_T = (1.0,)
+"""Sample points on each fine plate's edges and centre line (fractions of its length)."""
 STRIP_IN_PLANE_PX = 100.0
 """Residual [px] per radian (per model-plate length) of in-plane bending in the strip: a
 tape barely bends within its own plane, so this stays near zero unless the views insist."""
@@ -762,7 +768,7 @@ class _Strip:
         k = STRIP_PLATES
         self.fine = TapeSpec(np.repeat(spec.segment_lengths / k, k), spec.width, spec.base_position,
                              spec.base_rotation)
-        self.chain = _Chain(self.fine)
+        self.chain = _Chain(self.fine, STRIP_EDGE_T, STRIP_CENTRE_T)
         self.T, self.prior = _strip_layout(spec.n, k, float(STRIP_IN_PLANE_PX))
 
     def angles(self, x: np.ndarray) -> np.ndarray:
@@ -840,7 +846,8 @@ _strips: dict = {}
 def _strip_for(spec: TapeSpec) -> _Strip:
     """The strip of ``spec`` (cached: its chain's fixed arrays cost more than a fit step)."""
     key = (spec.segment_lengths.tobytes(), float(spec.width), np.asarray(spec.base_position, float).tobytes(),
-           np.asarray(spec.base_rotation, float).tobytes())
+           np.asarray(spec.base_rotation, float).tobytes(), STRIP_PLATES, STRIP_EDGE_T, STRIP_CENTRE_T,
+           STRIP_IN_PLANE_PX)
     strip = _strips.get(key)
     if strip is None:
         if len(_strips) > 16:
