@@ -857,9 +857,10 @@ def _strip_for(spec: TapeSpec) -> _Strip:
 
 
 def _strip_stage(chain: _Chain, fields: list[_Field], angles: np.ndarray):
-    """The strip fitted to the views from the plate chain ``angles`` (n, 3), and the
-    plate chain fitted in 3-D to the strip (its corners at the model's nodes, the tip's
-    weighted). Returns the chain's angles (n, 3)."""
+    """The strip fitted to the views from the plate chain ``angles`` (n, 3). Returns
+    output(frame_weight) -> the plate chain's angles (n, 3) fitted in 3-D to the strip: its
+    corners at the model's nodes (the tip's weighted) and, by ``frame_weight``, its tip
+    frame to the strip's (see :func:`_with_tip_frame`)."""
     spec = chain.spec
     strip = _strip_for(spec)
     k, n = STRIP_PLATES, spec.n
@@ -879,10 +880,13 @@ def _strip_stage(chain: _Chain, fields: list[_Field], angles: np.ndarray):
     goal = np.concatenate([fine.nodes[::k], fine.left[::k], fine.right[::k]])
     w = np.ones(3 * (n + 1))
     w[[n, 2 * n + 1, 3 * n + 2]] = STRIP_TIP_WEIGHT
-    fun = _corner_fit(chain.corners, goal, w)
-    if STRIP_FRAME_WEIGHT > 0:
-        fun = _with_tip_frame(fun, chain, fine.frames[-1], STRIP_FRAME_WEIGHT)
-    return _gauss_newton(fun, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
+    corners = _corner_fit(chain.corners, goal, w)
+
+    def output(frame_weight: float) -> np.ndarray:
+        fun = corners if frame_weight <= 0 else _with_tip_frame(corners, chain, fine.frames[-1], frame_weight)
+        return _gauss_newton(fun, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
+
+    return output
 
 
 def _with_tip_frame(fun, chain: _Chain, tip_frame: np.ndarray, weight: float):
@@ -978,8 +982,13 @@ def fit_default(capture: Capture, callback: Callback | None = None):
             angles, trace, cost = a2, trace + t2, c2
     fallback = None
     if STRIP:
-        fallback = (angles, cost)
-        angles = _strip_stage(chain, fields, angles)
+        output = _strip_stage(chain, fields, angles)
+        plate = angles
+        # What estimate() falls back to, in order, while the chain's silhouette cost is
+        # above the guard: the chain without the tip-frame pull, then the plate fit.
+        alternatives = [lambda: output(0.0)] if STRIP_FRAME_WEIGHT > 0 else []
+        fallback = (cost, alternatives + [lambda: plate])
+        angles = output(STRIP_FRAME_WEIGHT)
         trace = trace + [angles]
     return angles, trace, evaluator.evaluations, fallback
 
@@ -1056,12 +1065,15 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     else:
         angles, history, evaluations = fit_paper(capture, callback)
     shape, view_costs = _costed(capture, angles)
-    if fallback is not None and combine(view_costs) > STRIP_GUARD * fallback[1]:
-        # The chain taken from the strip explains the views far worse than the plate
-        # chain's own fit: the strip's fit went astray; keep the plate chain.
-        angles = fallback[0]
-        trace = trace[:-1]
-        shape, view_costs = _costed(capture, angles)
+    if fallback is not None:
+        plate_cost, alternatives = fallback
+        while alternatives and combine(view_costs) > STRIP_GUARD * plate_cost:
+            # The chain taken from the strip explains the views far worse than the plate
+            # chain's own fit: the tip-frame pull overshot or the strip's fit went astray.
+            # The last alternative is the plate chain itself.
+            angles = alternatives.pop(0)()
+            trace = trace[:-1] + ([angles] if alternatives else [])
+            shape, view_costs = _costed(capture, angles)
     elapsed = time.perf_counter() - start
     full = CostEvaluator([make_target(v) for v in capture.views])
     if method == "default":

@@ -159,7 +159,7 @@ def test_strip_guard_keeps_the_plate_chain_when_the_strip_goes_astray(monkeypatc
     monkeypatch.setattr(fit, "STRIP", False)
     plate = estimate(c)
     monkeypatch.setattr(fit, "STRIP", True)
-    monkeypatch.setattr(fit, "_strip_stage", lambda chain, fields, angles: angles + 0.5)
+    monkeypatch.setattr(fit, "_strip_stage", lambda chain, fields, angles: lambda frame_weight: angles + 0.5)
     guarded = estimate(c)
     assert np.allclose(guarded.angles, plate.angles)
     assert guarded.cost == pytest.approx(plate.cost)
