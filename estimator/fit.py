@@ -31,7 +31,6 @@ analytic Jacobian:
 from __future__ import annotations
 
 import functools
-
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -958,8 +957,11 @@ def _variants(angles: np.ndarray) -> np.ndarray:
 
 
 def fit_default(capture: Capture, callback: Callback | None = None):
-    """Fit by the project's method; returns (angles, trace, evaluations) where trace holds
-    the winning candidate's angles after each local-stage iteration."""
+    """Fit by the project's method; returns (angles, trace, evaluations, fallback) where
+    trace holds the winning candidate's angles after each local-stage iteration, and
+    fallback (with the strip stage, else None) is (the plate fit's eq.-11 cost, [functions
+    giving the chains to fall back to, in order, the plate fit last]) for estimate()'s
+    guard."""
     chain = _Chain(capture.tape)
     fields = [_prepare(v) for v in capture.views]
     evaluator = CostEvaluator([f.target for f in fields])
