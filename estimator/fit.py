@@ -826,15 +826,20 @@ def _gauss_newton(fun, x: np.ndarray, iterations: int, rtol: float) -> np.ndarra
     return x
 
 
-def _corner_fit(corners, goal: np.ndarray, weight: np.ndarray | float = 1.0):
+def _corner_fit(corners, goal: np.ndarray, weight: np.ndarray | float = 1.0, extra=None):
     """Residual function for :func:`_gauss_newton` pulling ``corners(x)`` -> (c (k, 3), J
-    (k, 3, P)) onto ``goal`` (k, 3), each corner weighted by ``weight`` ((k,) or scalar)."""
+    (k, 3, P)) onto ``goal`` (k, 3), each corner weighted by ``weight`` ((k,) or scalar);
+    ``extra(c, J)`` -> (residuals (e,), Jacobian (e, P)): more rows on the same corners."""
     w = np.broadcast_to(np.asarray(weight, float), (len(goal),))
 
     def fun(x):
         c, J = corners(x)
         r = (w[:, None] * (c - goal)).ravel()
-        return r, (w[:, None, None] * J).reshape(len(r), -1), 0.5 * r @ r
+        Jr = (w[:, None, None] * J).reshape(len(r), -1)
+        if extra is not None:
+            re, Je = extra(c, J)
+            r, Jr = np.concatenate([r, re]), np.vstack([Jr, Je])
+        return r, Jr, 0.5 * r @ r
 
     return fun
 
@@ -859,7 +864,7 @@ def _strip_stage(chain: _Chain, fields: list[_Field], angles: np.ndarray):
     """The strip fitted to the views from the plate chain ``angles`` (n, 3). Returns
     output(frame_weight) -> the plate chain's angles (n, 3) fitted in 3-D to the strip: its
     corners at the model's nodes (the tip's weighted) and, by ``frame_weight``, its tip
-    frame to the strip's (see :func:`_with_tip_frame`)."""
+    frame to the strip's (see :func:`_tip_frame_rows`)."""
     spec = chain.spec
     strip = _strip_for(spec)
     k, n = STRIP_PLATES, spec.n
@@ -879,33 +884,30 @@ def _strip_stage(chain: _Chain, fields: list[_Field], angles: np.ndarray):
     goal = np.concatenate([fine.nodes[::k], fine.left[::k], fine.right[::k]])
     w = np.ones(3 * (n + 1))
     w[[n, 2 * n + 1, 3 * n + 2]] = STRIP_TIP_WEIGHT
-    corners = _corner_fit(chain.corners, goal, w)
 
     def output(frame_weight: float) -> np.ndarray:
-        fun = corners if frame_weight <= 0 else _with_tip_frame(corners, chain, fine.frames[-1], frame_weight)
+        extra = _tip_frame_rows(chain, fine.frames[-1], frame_weight) if frame_weight > 0 else None
+        fun = _corner_fit(chain.corners, goal, w, extra)
         return _gauss_newton(fun, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
 
     return output
 
 
-def _with_tip_frame(fun, chain: _Chain, tip_frame: np.ndarray, weight: float):
-    """``fun`` (a :func:`_corner_fit`) plus residuals pulling the chain's tip frame F_n (its
-    last plate's direction and width axis) onto ``tip_frame`` (3, 3), ``weight`` times as
-    strongly as a corner (a unit-vector difference counts as moving a corner by the last
-    plate's length times it)."""
+def _tip_frame_rows(chain: _Chain, tip_frame: np.ndarray, weight: float):
+    """``extra`` rows for :func:`_corner_fit` on ``chain``'s corners pulling its tip frame
+    F_n (the last plate's direction and width axis) onto ``tip_frame`` (3, 3), ``weight``
+    times as strongly as a corner (a unit-vector difference counts as moving a corner by
+    the last plate's length times it)."""
     n, m = chain.n, chain.n + 1
     length, width = float(chain.spec.segment_lengths[-1]), float(chain.spec.width)
     s = weight * length
 
-    def out(x):
-        r, J, _ = fun(x)
-        c, Jc = chain.corners(x)
-        ex, Jx = (c[n] - c[n - 1]) / length, (Jc[n] - Jc[n - 1]) / length
-        ey, Jy = (c[m + n] - c[2 * m + n]) / width, (Jc[m + n] - Jc[2 * m + n]) / width
-        r = np.concatenate([r, s * (ex - tip_frame[:, 0]), s * (ey - tip_frame[:, 1])])
-        return r, np.vstack([J, s * Jx, s * Jy]), 0.5 * r @ r
+    def rows(c, J):
+        ex, Jx = (c[n] - c[n - 1]) / length, (J[n] - J[n - 1]) / length
+        ey, Jy = (c[m + n] - c[2 * m + n]) / width, (J[m + n] - J[2 * m + n]) / width
+        return s * np.concatenate([ex - tip_frame[:, 0], ey - tip_frame[:, 1]]), s * np.vstack([Jx, Jy])
 
-    return out
+    return rows
 
 
 # --------------------------------------------------------------------------- public
