@@ -399,6 +399,14 @@ class _Chain:
         pts, J = _kernels.points(self, a, True) if COMPILED else self.points(a, True)
         return pts[0, self.samples:], J[0, self.samples:]
 
+    def quads(self, angles: np.ndarray) -> np.ndarray:
+        """(B, n, 3) angles -> the plates' quads (B, n, 4, 3), as ``TapeShape.quads``."""
+        a = np.asarray(angles, float).reshape(-1, self.n, 3)
+        pts, _ = _kernels.points(self, a, False) if COMPILED else self.points(a, False)
+        c = pts[:, self.samples:]
+        m, i = self.n + 1, np.arange(self.n)
+        return np.stack([c[:, m + i], c[:, m + i + 1], c[:, 2 * m + i + 1], c[:, 2 * m + i]], axis=2)
+
     def points(self, angles: np.ndarray, jacobian: bool):
         """(B, n, 3) angles -> (B, s + 3m, 3) sample points then corners and, if asked,
         their (B, s + 3m, 3, 3n) Jacobian."""
@@ -969,7 +977,7 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     evaluator = CostEvaluator([f.target for f in fields])
 
     def silhouette_costs(angles: np.ndarray) -> np.ndarray:
-        return np.array([evaluator.cost(forward_kinematics(capture.tape, a).quads()) for a in angles])
+        return evaluator.costs(chain.quads(angles))
 
     starts = np.array(_beam_search(capture.tape, fields))
     angles, trace, cost = _refine(chain, fields, starts, silhouette_costs)

@@ -170,6 +170,18 @@ class CostEvaluator:
         """Combined cost over cameras (eq. 11)."""
         return combine(self.view_costs(quads_world))
 
+    def costs(self, quads_world: np.ndarray) -> np.ndarray:
+        """(B, m, 4, 3) world quads of B chains -> (B,) eq.-11 costs (each view projects
+        all chains at once)."""
+        B, m = quads_world.shape[:2]
+        self.evaluations += B
+        out = np.zeros((B, len(self.targets)))
+        for k, t in enumerate(self.targets if B else ()):
+            px = project_quads(t.camera, quads_world.reshape(-1, 4, 3)).reshape(B, m, 4, 2)
+            for b in range(B):
+                out[b, k] = self._view_xor(k, px[b]) / t.area
+        return np.sqrt(np.sum(np.square(out), axis=1))
+
     def model_masks(self, quads_world: np.ndarray) -> list[np.ndarray]:
         """The model silhouettes (ROI-sized uint8 images) for the given quads."""
         return [render(project_quads(t.camera, quads_world), t.shape, t.x0, t.y0) for t in self.targets]
