@@ -48,6 +48,19 @@ def test_cost_is_zero_at_truth(seed):
     assert np.allclose(cropped.view_costs(wrong), full.view_costs(wrong), rtol=0.05)
 
 
+def test_batched_costs_equal_one_by_one():
+    """The fit's candidate ranking: CostEvaluator.costs on a batch of chains (quads from the
+    compiled corner kernel) equals eq. 11 chain by chain from forward kinematics."""
+    from estimator import fit
+
+    c, angles = make_capture_with_angles(7, SyntheticOptions(kind="chain", cameras=3))
+    batch = angles[None] + np.random.default_rng(7).normal(scale=0.1, size=(6,) + angles.shape)
+    ev = CostEvaluator([make_target(v) for v in c.views])
+    one_by_one = [ev.cost(forward_kinematics(c.tape, a).quads()) for a in batch]
+    assert np.allclose(ev.costs(fit._Chain(c.tape).quads(batch)), one_by_one, rtol=1e-9, atol=0)
+    assert len(ev.costs(np.zeros((0, 5, 4, 3)))) == 0
+
+
 def test_ignored_pixels_do_not_count():
     c = _chain_capture(6)
     v = c.views[0]
