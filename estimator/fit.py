@@ -218,27 +218,27 @@ def _prepare(view: View) -> _Field:
     observed = roi if valid is None else roi & valid
     target = ViewTarget(cam, x0, y0, np.ascontiguousarray(observed), valid,
                         max(1.0, float(cv2.countNonZero(observed))))
-    return _Field(cam, x0, y0, field, ignore is not None, target, _outline(roi, ignore, x0, y0),
-                  _view_weight(roi), (sdf, flag))
+    contours, _ = cv2.findContours(roi, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    return _Field(cam, x0, y0, field, ignore is not None, target, _outline(contours, ignore, x0, y0),
+                  _view_weight(roi, contours), (sdf, flag))
 
 
-def _view_weight(roi: np.ndarray) -> float:
+def _view_weight(roi: np.ndarray, contours) -> float:
     """Factor on a view's robust terms: 1, less for a very thin silhouette (the tape seen
     nearly edge-on). There a pixel of segmentation or calibration error moves the boundary
     across the whole band, so the edge terms of the right shape land outside and that one
     view would outvote the others (measured: sim edge-on captures)."""
     if THIN_PX <= 0:
         return 1.0
-    contours, _ = cv2.findContours(roi, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     perimeter = sum(cv2.arcLength(c, True) for c in contours)
     thickness = 2.0 * float(cv2.countNonZero(roi)) / max(perimeter, 1.0)   # mean width [px]
     return min(1.0, thickness / THIN_PX) ** 2
 
 
-def _outline(roi: np.ndarray, ignore: np.ndarray | None, x0: int, y0: int) -> np.ndarray:
+def _outline(contours, ignore: np.ndarray | None, x0: int, y0: int) -> np.ndarray:
     """About OUTLINE_POINTS points spread evenly along the observed silhouette's outer
-    boundary, in full-image pixels; none next to ignored pixels (not a real boundary)."""
-    contours, _ = cv2.findContours(roi, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    boundary (``contours``: its outer contours in the ROI), in full-image pixels; none next
+    to ignored pixels (not a real boundary)."""
     if not contours:
         return np.zeros((0, 2))
     pts = np.concatenate([c.reshape(-1, 2) for c in contours])

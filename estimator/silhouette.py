@@ -180,7 +180,7 @@ class CostEvaluator:
             px = project_quads(t.camera, quads_world.reshape(-1, 4, 3)).reshape(B, m, 4, 2)
             for b in range(B):
                 out[b, k] = self._view_xor(k, px[b]) / t.area
-        return np.sqrt(np.sum(np.square(out), axis=1))
+        return np.array([combine(row) for row in out])
 
     def model_masks(self, quads_world: np.ndarray) -> list[np.ndarray]:
         """The model silhouettes (ROI-sized uint8 images) for the given quads."""
