@@ -1,7 +1,6 @@
 """Data files of the tapecell cell (cell TOML, UR5e model), shipped as package data.
 
-Installed, this folder is the package ``tapecell_assets``; in a source checkout it is the
-top-level ``assets/`` folder. ``asset_path`` finds a file in either case.
+This folder is the package ``tapecell.assets`` (installed or in a checkout). ``asset_path`` finds a file in either case.
 """
 from pathlib import Path
 

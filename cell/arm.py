@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 
 class ArmError(TapecellError):

@@ -22,8 +22,8 @@ import cv2
 import numpy as np
 import scipy.linalg
 
-from estimator.errors import TapecellError
-from estimator.geometry import Camera, rot_x, rot_y, rot_z
+from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.geometry import Camera, rot_x, rot_y, rot_z
 
 from .cross import REASONS, CrossDetection, CrossParams, detect_cross
 
@@ -220,7 +220,7 @@ class PlannedPose:
 def nominal_cameras(cell, n_cameras: int) -> list[Camera]:
     """The cameras as the cell file places them (look-at, fx, no distortion): used to plan
     before anything is calibrated."""
-    from sim.config import look_at_world_from_cv
+    from .config import look_at_world_from_cv
 
     c = cell.cameras
     K = np.array([[c.fx, 0.0, c.width / 2 - 0.5], [0.0, c.fx, c.height / 2 - 0.5], [0.0, 0.0, 1.0]])

@@ -11,7 +11,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 
 class CameraSourceError(TapecellError):

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from estimator.geometry import Camera
+from tapecell.estimator.geometry import Camera
 
 REASONS = ("missing", "border", "oblique", "occluded")
 

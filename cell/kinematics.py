@@ -1,7 +1,9 @@
 """UR5e inverse kinematics in closed form, for reachability checks without MuJoCo.
 
-The forward model is ``sim.ur5e`` (Universal Robots' published DH parameters), so the
-planner, the safety check and the simulated arm agree on one kinematic model. The
+One DH table, one forward kinematics and one analytic inverse for the whole project
+(Universal Robots' published DH parameters): the planner, the safety check, the fake arm
+and the simulated arm all use these. The MuJoCo model in ``assets/ur5e.xml`` is built from
+the same numbers (tests check that the two agree). The
 closed-form inverse follows Hawkins, "Analytic Inverse Kinematics for the Universal Robots
 UR-5/UR-10 Arms" (2013): up to 8 solutions (shoulder left/right, wrist up/down, elbow
 up/down), each checked against the forward model before it is returned.
@@ -13,17 +15,34 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.ur5e import DH_A, DH_ALPHA, DH_D, JOINT_LOWER, JOINT_UPPER, dh_fk, dh_frames
+__all__ = ["fk", "dh_frames", "ik_solutions", "ik_nearest", "JOINT_NAMES", "JOINT_LOWER", "JOINT_UPPER"]
 
-__all__ = ["fk", "dh_frames", "ik_solutions", "ik_nearest", "JOINT_LOWER", "JOINT_UPPER"]
+# Universal Robots' published DH parameters of the UR5e.
+DH_D = np.array([0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996])
+DH_A = np.array([0.0, -0.425, -0.3922, 0.0, 0.0, 0.0])
+DH_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
+
+JOINT_NAMES = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
+JOINT_LOWER = np.array([-2 * np.pi, -2 * np.pi, -np.pi, -2 * np.pi, -2 * np.pi, -2 * np.pi])
+JOINT_UPPER = -JOINT_LOWER
 
 _D1, _D4, _D5, _D6 = DH_D[0], DH_D[3], DH_D[4], DH_D[5]
 _A2, _A3 = DH_A[1], DH_A[2]
 
 
+def dh_frames(q: np.ndarray) -> np.ndarray:
+    """(7, 4, 4) world_from_frame_i for DH frames 0..6 at joints ``q`` (6,) [rad]."""
+    T = np.eye(4)
+    out = [T]
+    for i in range(6):
+        T = T @ _dh(q[i], i)
+        out.append(T)
+    return np.array(out)
+
+
 def fk(q: np.ndarray) -> np.ndarray:
-    """4x4 world_from_flange at joints ``q`` (6,) [rad]."""
-    return dh_fk(np.asarray(q, float))
+    """4x4 world_from_flange at joints ``q`` (6,) [rad]: the UR5e's DH forward kinematics."""
+    return dh_frames(np.asarray(q, float))[-1]
 
 
 def _dh(theta: float, i: int) -> np.ndarray:

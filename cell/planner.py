@@ -44,8 +44,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from estimator.errors import TapecellError
-from estimator.geometry import is_rotation
+from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.geometry import is_rotation
 
 from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import ik_nearest

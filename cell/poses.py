@@ -18,9 +18,9 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimator.errors import TapecellError
-from estimator.geometry import is_rotation
-from sim.config import matrix_to_pose, pose_to_matrix
+from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.geometry import is_rotation
+from .config import matrix_to_pose, pose_to_matrix
 
 
 class PoseError(TapecellError):

@@ -1,9 +1,6 @@
 """Measuring the true tape with the needle on the arm (the paper's sec. 4.1, Fig. 6).
 
-Simulated cell: the needle approaches each target point slowly along the tape's normal
-until MuJoCo reports contact between needle and tape (``mj_geomDistance`` <= 0); the
-needle tip then is the measured point (flange pose the arm reports composed with the
-needle offset). Real cell: the arm is put in freedrive (teach mode), the operator guides
+The simulated cell's prober is ``tapecell.sim.prober.SimProber``. Real cell: the arm is put in freedrive (teach mode), the operator guides
 the needle onto the tape, and Enter records the TCP; teach mode ends in every case.
 
 The error of an estimate at a measured point is the paper's ``e`` (eq. 12): the
@@ -16,7 +13,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 from .poses import matrix_to_pose6, pose6_to_matrix
 
@@ -70,70 +67,6 @@ def needle_world_from_tcp(point: np.ndarray, approach: np.ndarray) -> np.ndarray
     T[:3, :3] = np.column_stack([x, np.cross(z, x), z])
     T[:3, 3] = point
     return T
-
-
-class SimProber:
-    """Probes the simulated tape with the needle on a :class:`sim.arm.SimArm`."""
-
-    def __init__(self, sim_cell, sim_arm, params: ProbeParams = ProbeParams()) -> None:
-        import mujoco
-
-        self.sim, self.arm, self.params = sim_cell, sim_arm, params
-        m = sim_cell.model
-        self._needle = m.geom("needle").id
-        self._tape = [m.geom(f"tape_{i}").id for i in range(sim_cell.config.tape.plates)]
-        self._fromto = np.zeros(6)
-        self._mujoco = mujoco
-
-    def gap(self) -> float:
-        """Smallest distance between the needle and any tape plate [m] (<= 0: contact)."""
-        m, d = self.sim.model, self.sim.data
-        best = np.inf
-        for g in self._tape:
-            best = min(best, self._mujoco.mj_geomDistance(m, d, self._needle, g, 0.05, self._fromto))
-        return float(best)
-
-    def _go_to_standoff(self, label: str, point: np.ndarray, approach: np.ndarray) -> np.ndarray:
-        """Joint move (closed-form IK, any roll of the needle about its axis) to the needle
-        frame at ``point`` pointing along ``approach``; returns that frame (4x4)."""
-        from .kinematics import ik_nearest
-
-        flange_from_needle = self.sim.config.tools.flange_from_tcp("needle")
-        base = needle_world_from_tcp(point, approach)
-        for roll in np.radians(np.arange(0.0, 360.0, 30.0)):
-            c, s_ = np.cos(roll), np.sin(roll)
-            R = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
-            T = base @ R
-            q = ik_nearest(T @ np.linalg.inv(flange_from_needle), self.arm.joints())
-            if q is not None:
-                self.arm.move_joints(q)
-                return T
-        raise ProbeError(f"{label}: the needle cannot reach {np.round(point, 4).tolist()} along "
-                         f"{np.round(approach, 3).tolist()}")
-
-    def probe(self, label: str, target: np.ndarray, normal: np.ndarray) -> ProbedPoint:
-        """Approach ``target`` along -``normal`` (from the side ``normal`` points to) until
-        the needle touches the tape; the needle tip at contact is the measurement."""
-        p = self.params
-        approach = -normal / np.linalg.norm(normal)
-        start = self._go_to_standoff(label, target - p.standoff * approach, approach)
-        travelled = 0.0
-        while True:
-            gap = self.gap()
-            if gap <= 0.0:
-                break
-            if travelled > 2 * p.standoff:
-                raise ProbeError(f"{label}: no contact with the tape within {2000 * p.standoff:.0f} mm "
-                                 f"of {np.round(target, 4).tolist()}")
-            step = p.coarse_step if gap > 2 * p.coarse_step else min(p.fine_step, max(gap, 1e-5))
-            travelled += step
-            T = start.copy()
-            T[:3, 3] = start[:3, 3] + travelled * approach
-            self.arm.move_tcp(T, speed=p.speed, tool="needle", settle_s=0.3)
-        measured = self.arm.tcp_pose("needle")[:3, 3]
-        # Back off before the next point so the needle never drags along the tape.
-        self.arm.move_tcp(start, speed=0.05, tool="needle")
-        return ProbedPoint(label, measured.copy(), np.asarray(target, float))
 
 
 def approach_normal(point: np.ndarray, normal: np.ndarray, robot_side: np.ndarray) -> np.ndarray:

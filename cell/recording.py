@@ -65,12 +65,12 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from estimator.capture import Capture, Truth
-from estimator.errors import TapecellError
-from estimator.geometry import Camera
-from estimator.result import Estimate
-from estimator.silhouette import render_view
-from estimator.tape import TapeSpec, forward_kinematics
+from tapecell.estimator.capture import Capture, Truth
+from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.geometry import Camera
+from tapecell.estimator.result import Estimate
+from tapecell.estimator.silhouette import render_view
+from tapecell.estimator.tape import TapeSpec, forward_kinematics
 
 # Class ids of the segmentation overlays (AnnotationContext on each camera's image).
 CLASS_MASK, CLASS_MODEL, CLASS_IGNORE = 1, 2, 3

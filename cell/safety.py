@@ -22,7 +22,7 @@ from typing import Any, Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 from .arm import Arm
 from .poses import interpolate_pose6, pose6_to_matrix, rotation_angle_between

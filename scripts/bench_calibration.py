@@ -26,8 +26,8 @@ TARGETS = {"focal_pct": 0.2, "principal_px": 1.0, "centre_mm": 1.0, "rotation_de
 
 
 def part1(cell, seed: int) -> dict:
-    from cell.calibration import camera_errors
-    from cell.commands.calibrate import calibrate_sim
+    from tapecell.cell.calibration import camera_errors
+    from tapecell.cli.commands.calibrate import calibrate_sim
 
     print(f"{'cams':>4} {'camera':>6} {'focal %':>8} {'pp px':>7} {'centre mm':>10} {'rot deg':>8} "
           f"{'rms px':>7} {'poses':>6} {'rejected':>9} {'time s':>7}  ok")
@@ -51,9 +51,9 @@ def part1(cell, seed: int) -> dict:
 
 
 def part2(cell, cameras, n_captures: int, seed0: int) -> None:
-    from estimator import estimate
-    from estimator.metrics import errors
-    from sim.cell import SimCell
+    from tapecell.estimator import estimate
+    from tapecell.estimator.metrics import errors
+    from tapecell.sim.cell import SimCell
 
     by_name = {c.name: c for c in cameras}
     tip_true, tip_cal = [], []
@@ -79,7 +79,7 @@ def part2(cell, cameras, n_captures: int, seed0: int) -> None:
 
 
 def main() -> int:
-    from sim.config import load_cell_config
+    from tapecell.cell.config import load_cell_config
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--captures", type=int, default=30)

@@ -17,7 +17,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from cell.episodes import blame, run_episodes, summarize, wilson_interval  # noqa: E402
+from tapecell.sim.episodes import blame, run_episodes, summarize, wilson_interval  # noqa: E402
 
 
 def main() -> int:

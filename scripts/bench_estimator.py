@@ -16,9 +16,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from estimator import TapecellError  # noqa: E402
-from estimator.bench import details, run, sample_captures, summary  # noqa: E402
-from estimator.synthetic import sample_like  # noqa: E402
+from tapecell.estimator import TapecellError  # noqa: E402
+from tapecell.estimator.bench import details, run, sample_captures, summary  # noqa: E402
+from tapecell.estimator.synthetic import sample_like  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,11 +20,11 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np  # noqa: E402
 
-import estimator  # noqa: E402
-from estimator.metrics import errors  # noqa: E402
-from sim.cell import SimCell  # noqa: E402
-from sim.config import load_cell_config  # noqa: E402
-from sim.tape_shape import CASES  # noqa: E402
+from tapecell import estimator  # noqa: E402
+from tapecell.estimator.metrics import errors  # noqa: E402
+from tapecell.sim.cell import SimCell  # noqa: E402
+from tapecell.cell.config import load_cell_config  # noqa: E402
+from tapecell.sim.tape_shape import CASES  # noqa: E402
 
 
 def run(n_cameras: int, captures: int, cfg, do_estimate: bool) -> list[dict]:

@@ -25,10 +25,10 @@ from scipy.optimize import least_squares
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from estimator.bench import sample_captures  # noqa: E402
-from estimator.capture import Capture  # noqa: E402
-from estimator.metrics import Errors, centerline_at, errors  # noqa: E402
-from estimator.tape import forward_kinematics  # noqa: E402
+from tapecell.estimator.bench import sample_captures  # noqa: E402
+from tapecell.estimator.capture import Capture  # noqa: E402
+from tapecell.estimator.metrics import Errors, centerline_at, errors  # noqa: E402
+from tapecell.estimator.tape import forward_kinematics  # noqa: E402
 
 SAMPLES_PER_PLATE = 12
 STARTS = 8

@@ -12,11 +12,12 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 from .cell import SimCell
-from .config import TOOL_NAMES, matrix_to_pose, pose_to_matrix
-from .ur5e import JOINT_LOWER, JOINT_UPPER, IKError, dh_fk, ik
+from tapecell.cell.config import TOOL_NAMES, matrix_to_pose, pose_to_matrix
+from tapecell.cell.kinematics import JOINT_LOWER, JOINT_UPPER, fk as dh_fk
+from .ur5e import IKError, ik
 
 _WAYPOINT_STEPS = 10   # a Cartesian move solves IK every this many physics steps
 

@@ -13,14 +13,14 @@ import cv2
 import mujoco
 import numpy as np
 
-from estimator.capture import Capture, Truth, View
-from estimator.geometry import Camera
-from estimator.segment import SegmentationParams, segment_tape
+from tapecell.estimator.capture import Capture, Truth, View
+from tapecell.estimator.geometry import Camera
+from tapecell.estimator.segment import SegmentationParams, segment_tape
 
-from .config import TOOL_NAMES, CellConfig, SimConfigError
+from tapecell.cell.config import TOOL_NAMES, CellConfig, CellConfigError
 from .scene import GROUP_ARM, GROUP_TAPE, TAPE_HINGES, TOOL_GROUPS, build_spec
 from .tape_shape import RestShape, rest_shape, tape_spec
-from .ur5e import JOINT_NAMES
+from tapecell.cell.kinematics import JOINT_NAMES
 
 _CV_FROM_MJ_CAM = np.diag([1.0, -1.0, -1.0])   # MuJoCo camera looks down -z with y up
 
@@ -41,7 +41,7 @@ def camera_from_mujoco(model: mujoco.MjModel, data: mujoco.MjData, cam_id: int, 
     return Camera(name, width, height, K, np.zeros(5), R, t)
 
 
-class SimError(SimConfigError):
+class SimError(CellConfigError):
     """The simulation went wrong (unstable, warnings, unknown camera or tool)."""
 
 

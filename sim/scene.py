@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from .config import TOOL_NAMES, CellConfig, look_at_world_from_cv, pose_to_matrix
+from tapecell.cell.config import TOOL_NAMES, CellConfig, look_at_world_from_cv, pose_to_matrix
 
 GROUP_WORLD, GROUP_TAPE, GROUP_ARM, GROUP_PLATE, GROUP_NEEDLE, GROUP_GRIPPER = range(6)
 TOOL_GROUPS = {"plate": GROUP_PLATE, "needle": GROUP_NEEDLE, "gripper": GROUP_GRIPPER}
@@ -38,7 +38,7 @@ OVERLAP = 0.2   # fraction of a plate each tape plate overlaps the next
 
 def ur5e_model_path() -> Path:
     """``assets/ur5e.xml`` next to the cell file (checkout or installed package)."""
-    from .config import default_cell_path
+    from tapecell.cell.config import default_cell_path
 
     return default_cell_path().parent / "ur5e.xml"
 
@@ -231,7 +231,7 @@ def _add_gripper(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
 
 
 def _add_actuators(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
-    from .ur5e import JOINT_LOWER, JOINT_UPPER, JOINT_NAMES
+    from tapecell.cell.kinematics import JOINT_LOWER, JOINT_UPPER, JOINT_NAMES
 
     for j, name in enumerate(JOINT_NAMES):
         jt = spec.joint(name)

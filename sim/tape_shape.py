@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.tape import TapeSpec, forward_kinematics
+from tapecell.estimator.tape import TapeSpec, forward_kinematics
 
-from .config import CellConfig, SimConfigError, look_at_world_from_cv
+from tapecell.cell.config import CellConfig, CellConfigError, look_at_world_from_cv, tape_spec
 
 CASES = ("bend", "twist", "tip_curl", "edge_on", "mixed")
 
@@ -29,13 +29,6 @@ class RestShape:
     case: str
     angles: np.ndarray
     draws: int
-
-
-def tape_spec(cfg: CellConfig, plates: int | None = None) -> TapeSpec:
-    """The tape as a plate chain of ``plates`` equal plates (default: the simulated ones)."""
-    t = cfg.tape
-    n = plates or t.plates
-    return TapeSpec(np.full(n, t.length / n), t.width, np.asarray(t.base_position, float), t.world_from_base)
 
 
 def _bump(n: int, center: float, width: float) -> np.ndarray:
@@ -123,5 +116,5 @@ def rest_shape(cfg: CellConfig, seed: int, max_draws: int = 200) -> RestShape:
         angles = _draw(cfg, case, rng)
         if fits_cell(cfg, angles):
             return RestShape(case, angles, draw)
-    raise SimConfigError(f"{cfg.source}: no '{case}' tape shape for seed {seed} fits the cameras' view "
+    raise CellConfigError(f"{cfg.source}: no '{case}' tape shape for seed {seed} fits the cameras' view "
                          f"after {max_draws} draws; move the cameras back or shorten the tape")

@@ -1,4 +1,6 @@
-"""UR5e kinematics: the published DH model, its Jacobian and a numerical inverse.
+"""The simulated controller's numerical inverse: damped least squares on the DH model of
+``tapecell.cell.kinematics`` (the one forward kinematics), seeded from the current joints
+the way a controller's Cartesian move follows its path.
 
 Frames: ``base`` is the robot's base frame (= the world in this project), ``flange`` is
 DH frame 6, the pose ur_rtde's ``getActualTCPPose`` reports with a zero TCP offset.
@@ -11,43 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from estimator.errors import TapecellError
-
-# Universal Robots' published DH parameters of the UR5e.
-DH_D = np.array([0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996])
-DH_A = np.array([0.0, -0.425, -0.3922, 0.0, 0.0, 0.0])
-DH_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
-
-JOINT_NAMES = ("shoulder_pan", "shoulder_lift", "elbow", "wrist_1", "wrist_2", "wrist_3")
-JOINT_LOWER = np.array([-2 * np.pi, -2 * np.pi, -np.pi, -2 * np.pi, -2 * np.pi, -2 * np.pi])
-JOINT_UPPER = -JOINT_LOWER
+from tapecell.cell.kinematics import JOINT_LOWER, JOINT_UPPER, dh_frames, fk as dh_fk
+from tapecell.estimator.errors import TapecellError
 
 
 class IKError(TapecellError):
     """No joint solution within the joint limits reaches the requested pose."""
-
-
-def _dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
-    ct, st, ca, sa = np.cos(theta), np.sin(theta), np.cos(alpha), np.sin(alpha)
-    return np.array([[ct, -st * ca, st * sa, a * ct],
-                     [st, ct * ca, -ct * sa, a * st],
-                     [0.0, sa, ca, d],
-                     [0.0, 0.0, 0.0, 1.0]])
-
-
-def dh_frames(q: np.ndarray) -> np.ndarray:
-    """(7, 4, 4) base_from_frame_i for DH frames 0..6 at joints ``q`` (6,) [rad]."""
-    T = np.eye(4)
-    out = [T]
-    for i in range(6):
-        T = T @ _dh(q[i], DH_D[i], DH_A[i], DH_ALPHA[i])
-        out.append(T)
-    return np.array(out)
-
-
-def dh_fk(q: np.ndarray) -> np.ndarray:
-    """4x4 base_from_flange at joints ``q`` (6,) [rad], the UR5e's DH forward kinematics."""
-    return dh_frames(np.asarray(q, float))[-1]
 
 
 def jacobian(q: np.ndarray, flange_from_tcp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -12,8 +12,8 @@ import types
 
 import numpy as np
 
-from cell.kinematics import fk
-from cell.poses import matrix_to_pose6
+from tapecell.cell.kinematics import fk
+from tapecell.cell.poses import matrix_to_pose6
 
 
 class FakeRobot:
@@ -123,7 +123,7 @@ def install_fake_rtde(monkeypatch, robot: FakeRobot, probe: bool = True) -> None
         setattr(module, attr, cls)
         monkeypatch.setitem(sys.modules, name, module)
     if not probe:
-        import cell.ur
+        from tapecell.cell import ur as cell_ur
 
         # No socket to a real controller: the fake answers for it.
-        monkeypatch.setattr(cell.ur, "probe_rtde", lambda *a, **k: None)
+        monkeypatch.setattr(cell_ur, "probe_rtde", lambda *a, **k: None)

@@ -3,11 +3,11 @@ from __future__ import annotations
 
 import numpy as np
 
-import sim  # noqa: F401  (headless GL before mujoco)
+from tapecell import sim  # noqa: F401  (headless GL before mujoco)
 import mujoco
-from sim.config import load_cell_config
-from sim.scene import build_spec
-from sim.ur5e import JOINT_NAMES
+from tapecell.cell.config import load_cell_config
+from tapecell.sim.scene import build_spec
+from tapecell.cell.kinematics import JOINT_NAMES
 
 
 class MujocoArm:

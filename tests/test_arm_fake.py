@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.arm import Arm, ArmError, ArmNotConnectedError, ProtectiveStopError
-from cell.fake_arm import FakeArm
-from cell.kinematics import fk
-from cell.poses import matrix_to_pose6, pose_distance
+from tapecell.cell.arm import Arm, ArmError, ArmNotConnectedError, ProtectiveStopError
+from tapecell.cell.fake_arm import FakeArm
+from tapecell.cell.kinematics import fk
+from tapecell.cell.poses import matrix_to_pose6, pose_distance
 
 Q0 = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cell.kinematics import fk, ik_nearest, ik_solutions
-from cell.poses import (PoseError, as_pose6, flange_target_for_tool, interpolate_pose6, invert, matrix_to_pose6,
+from tapecell.cell.kinematics import fk, ik_nearest, ik_solutions
+from tapecell.cell.poses import (PoseError, as_pose6, flange_target_for_tool, interpolate_pose6, invert, matrix_to_pose6,
                         pose6_to_matrix, pose_distance, tool_from_flange_pose)
 
 

@@ -4,21 +4,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import sim  # noqa: F401  (sets MUJOCO_GL=egl before mujoco is imported)
+from tapecell import sim  # noqa: F401  (sets MUJOCO_GL=egl before mujoco is imported)
 
-from cell.arm import Arm, ArmError
-from cell.kinematics import fk
-from cell.planner import GraspParams, GripperGeometry, TipFrame, execute_plan, plan_grasp
-from cell.poses import matrix_to_pose6, pose_distance
-from cell.safety import SafeArm, SafetyError, SafetyLimits
-from cell.sim_arm import SimArmAdapter
+from tapecell.cell.arm import Arm, ArmError
+from tapecell.cell.kinematics import fk
+from tapecell.cell.planner import GraspParams, GripperGeometry, TipFrame, execute_plan, plan_grasp
+from tapecell.cell.poses import matrix_to_pose6, pose_distance
+from tapecell.cell.safety import SafeArm, SafetyError, SafetyLimits
+from tapecell.sim.arm_adapter import SimArmAdapter
 
 
 @pytest.fixture(scope="module")
 def sim():
-    from sim.arm import SimArm
-    from sim.cell import SimCell
-    from sim.config import load_cell_config
+    from tapecell.sim.arm import SimArm
+    from tapecell.sim.cell import SimCell
+    from tapecell.cell.config import load_cell_config
 
     cfg = load_cell_config()
     cell = SimCell(cfg, seed=3, n_cameras=2, tool="gripper")

@@ -10,11 +10,11 @@ import time
 import numpy as np
 import pytest
 
-from cell.arm import ArmError, ArmNotConnectedError, ProtectiveStopError
-from cell.kinematics import fk
-from cell.poses import matrix_to_pose6
-from cell.safety import SafetyError, SafetyLimits
-from cell.ur import URArm, probe_rtde
+from tapecell.cell.arm import ArmError, ArmNotConnectedError, ProtectiveStopError
+from tapecell.cell.kinematics import fk
+from tapecell.cell.poses import matrix_to_pose6
+from tapecell.cell.safety import SafetyError, SafetyLimits
+from tapecell.cell.ur import URArm, probe_rtde
 from fakes import FakeRobot, install_fake_rtde
 
 Q_START = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])   # flange near (-0.13, 0.34, 0.35)

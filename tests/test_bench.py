@@ -1,7 +1,7 @@
 """The benchmark's table (estimator.bench.summary), from hand-made rows."""
 from __future__ import annotations
 
-from estimator.bench import Row, summary
+from tapecell.estimator.bench import Row, summary
 
 
 def _row(method: str, tip_mm: float, time_s: float, cameras: int) -> Row:

@@ -5,14 +5,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from cell.calibration import (CalibrationError, calibrate_camera, camera_errors, decompose_projection,
+from tapecell.cell.calibration import (CalibrationError, calibrate_camera, camera_errors, decompose_projection,
                               dlt_projection, plan_poses, solve_all)
-from cell.cli import main
-from cell.cross import CrossDetection
-from estimator.capture import load_cameras
-from estimator.geometry import Camera, rot_x, rot_z
+from tapecell.cli.main import main
+from tapecell.cell.cross import CrossDetection
+from tapecell.estimator.capture import load_cameras
+from tapecell.estimator.geometry import Camera, rot_x, rot_z
 from fakes import FakeRobot, install_fake_rtde
-from sim.config import load_cell_config
+from tapecell.cell.config import load_cell_config
 
 K = np.array([[1371.0, 0, 319.5], [0, 1371.0, 239.5], [0, 0, 1]])
 
@@ -114,7 +114,7 @@ def sim_run(tmp_path_factory):
 
 
 def test_calibrate_command_meets_targets_against_true_cameras(sim_run):
-    from sim.cell import SimCell
+    from tapecell.sim.cell import SimCell
 
     rc, out, _ = sim_run
     assert rc == 0
@@ -130,7 +130,7 @@ def test_calibrate_command_meets_targets_against_true_cameras(sim_run):
 
 
 def test_calibrate_recording_reads_back(sim_run):
-    from cell.recording import read_recording
+    from tapecell.cell.recording import read_recording
 
     _, _, rrd = sim_run
     rows = read_recording(rrd)
@@ -182,10 +182,10 @@ def test_real_calibrate_execute_moves_exactly_the_plan(tmp_path, fake_ur):
     """--execute with a faked controller and the pose images from a folder (rendered here
     at the planned poses, as a real camera would have taken them)."""
     import cv2
-    from cell.commands.calibrate import SimCameras
-    from cell.sim_arm import SimArmAdapter
-    from sim.arm import SimArm
-    from sim.cell import SimCell
+    from tapecell.cli.commands.calibrate import SimCameras
+    from tapecell.sim.arm_adapter import SimArmAdapter
+    from tapecell.sim.arm import SimArm
+    from tapecell.sim.cell import SimCell
 
     cell = load_cell_config()
     n_cams = min(len(cell.robot.camera_devices), len(cell.cameras.camera))

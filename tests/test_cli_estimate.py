@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from cell.cli import main
-from estimator.capture import load_capture, save_capture
-from estimator.synthetic import SyntheticOptions, make_capture
+from tapecell.cli.main import main
+from tapecell.estimator.capture import load_capture, save_capture
+from tapecell.estimator.synthetic import SyntheticOptions, make_capture
 
 
 @pytest.fixture(scope="module")
@@ -157,5 +157,5 @@ def test_colour_image_capture_is_segmented(tmp_path, capsys):
 
 
 def test_console_script_help():
-    r = subprocess.run([sys.executable, "-m", "cell.cli", "estimate", "--help"], capture_output=True, text=True)
+    r = subprocess.run([sys.executable, "-m", "tapecell.cli.main", "estimate", "--help"], capture_output=True, text=True)
     assert r.returncode == 0 and "CAPTURE_DIR" in r.stdout

@@ -5,8 +5,8 @@ import cv2
 import numpy as np
 import pytest
 
-from cell.cross import detect_cross, plate_image
-from estimator.geometry import Camera, rot_x, rot_y, rot_z
+from tapecell.cell.cross import detect_cross, plate_image
+from tapecell.estimator.geometry import Camera, rot_x, rot_y, rot_z
 
 K = np.array([[1371.0, 0, 319.5], [0, 1371.0, 239.5], [0, 0, 1]])
 CAM = Camera("c", 640, 480, K, np.zeros(5), np.eye(3), np.zeros(3))
@@ -73,12 +73,12 @@ def test_rejects_partly_hidden_cross():
 
 @pytest.fixture(scope="module")
 def sim_plate():
-    from sim.config import load_cell_config
-    from sim.cell import SimCell
-    from cell.calibration import plan_poses
-    from cell.commands.calibrate import SimCameras
-    from cell.sim_arm import SimArmAdapter
-    from sim.arm import SimArm
+    from tapecell.cell.config import load_cell_config
+    from tapecell.sim.cell import SimCell
+    from tapecell.cell.calibration import plan_poses
+    from tapecell.cli.commands.calibrate import SimCameras
+    from tapecell.sim.arm_adapter import SimArmAdapter
+    from tapecell.sim.arm import SimArm
 
     cell = load_cell_config()
     poses = plan_poses(cell, 2)

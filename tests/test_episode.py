@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from cell.cli import main
-from cell.episodes import EpisodeJob, append_result, load_results, run_episodes, summarize, wilson_interval
-from cell.recording import read_recording
-from sim.config import default_cell_path
+from tapecell.cli.main import main
+from tapecell.sim.episodes import EpisodeJob, append_result, load_results, run_episodes, summarize, wilson_interval
+from tapecell.cell.recording import read_recording
+from tapecell.cell.config import default_cell_path
 
 
 def test_one_episode_grasps_the_tape_and_records_every_step(tmp_path, capsys):
@@ -117,7 +117,7 @@ def test_wilson_interval(k, n, lo, hi):
 
 
 def test_failures_are_blamed_on_a_stage():
-    from cell.episodes import blame
+    from tapecell.sim.episodes import blame
     assert blame({"success": True}) is None
     assert blame({"success": False, "failure": "estimate rejected", "tip_error_mm": 0.5}) == "estimator"
     assert blame({"success": False, "failure": "missed", "tip_error_mm": 9.0}) == "estimator"
@@ -132,10 +132,10 @@ def test_episode_estimates_with_the_cameras_file_the_cell_file_names(tmp_path, c
 
     import numpy as np
 
-    from estimator.capture import save_cameras
-    from estimator.geometry import rot_z
-    from sim.cell import SimCell
-    from sim.config import load_cell_config
+    from tapecell.estimator.capture import save_cameras
+    from tapecell.estimator.geometry import rot_z
+    from tapecell.sim.cell import SimCell
+    from tapecell.cell.config import load_cell_config
 
     with SimCell(load_cell_config(), seed=1, n_cameras=2, tool="gripper") as cell:
         true = cell.cameras()

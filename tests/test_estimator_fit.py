@@ -7,12 +7,12 @@ import cv2
 import numpy as np
 import pytest
 
-from estimator import estimate, forward_kinematics, load_capture, save_capture
-from estimator.capture import View
-from estimator.metrics import errors
-from estimator.paper import initial_simplex
-from estimator.silhouette import CostEvaluator, make_target, roi_of
-from estimator.synthetic import SyntheticOptions, make_capture, make_capture_with_angles, rig_cameras
+from tapecell.estimator import estimate, forward_kinematics, load_capture, save_capture
+from tapecell.estimator.capture import View
+from tapecell.estimator.metrics import errors
+from tapecell.estimator.paper import initial_simplex
+from tapecell.estimator.silhouette import CostEvaluator, make_target, roi_of
+from tapecell.estimator.synthetic import SyntheticOptions, make_capture, make_capture_with_angles, rig_cameras
 
 SAMPLES = Path(__file__).resolve().parents[2] / "shared" / "captures-sample"
 
@@ -51,7 +51,7 @@ def test_cost_is_zero_at_truth(seed):
 def test_batched_costs_equal_one_by_one():
     """The fit's candidate ranking: CostEvaluator.costs on a batch of chains (quads from the
     compiled corner kernel) equals eq. 11 chain by chain from forward kinematics."""
-    from estimator import fit
+    from tapecell.estimator import fit
 
     c, angles = make_capture_with_angles(7, SyntheticOptions(kind="chain", cameras=3))
     batch = angles[None] + np.random.default_rng(7).normal(scale=0.1, size=(6,) + angles.shape)
@@ -116,7 +116,7 @@ def test_initial_simplex_is_eq_9():
 
 
 def test_unknown_method_is_an_estimate_error():
-    from estimator import EstimateError
+    from tapecell.estimator import EstimateError
     with pytest.raises(EstimateError):
         estimate(_chain_capture(16), "magic")
 
@@ -148,7 +148,7 @@ def test_sample_captures_estimate_within_loose_bound(name):
 def test_strip_stage_follows_continuous_tapes_better_than_the_plate_chain(monkeypatch):
     """On continuous strips (which 30 mm plates can only approximate) the strip stage puts
     the tip closer to the truth than the plate chain's own fit, over a handful of seeds."""
-    from estimator import fit
+    from tapecell.estimator import fit
 
     captures = [make_capture(seed, SyntheticOptions(kind="strip", cameras=2)) for seed in range(20, 30)]
 
@@ -166,7 +166,7 @@ def test_strip_stage_follows_continuous_tapes_better_than_the_plate_chain(monkey
 def test_strip_guard_keeps_the_plate_chain_when_the_strip_goes_astray(monkeypatch):
     """A strip stage that returns nonsense is caught by the silhouette cost: the plate
     chain's fit is returned instead."""
-    from estimator import fit
+    from tapecell.estimator import fit
 
     c = _chain_capture(16)
     monkeypatch.setattr(fit, "STRIP", False)
@@ -182,8 +182,8 @@ def test_tip_frame_is_pulled_towards_the_strips(monkeypatch):
     """On tapes curled near the tip (captures drawn like the sample set), pulling the output
     chain's last plate towards the strip's tip frame gives tip normals closer to the truth
     than the plain 3-D fit to the strip's nodes, at the same tip position."""
-    from estimator import fit
-    from estimator.synthetic import sample_like
+    from tapecell.estimator import fit
+    from tapecell.estimator.synthetic import sample_like
 
     captures = [sample_like(seed) for seed in range(100, 108)]
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimator import _kernels, fit
-from estimator.synthetic import SyntheticOptions, make_capture
+from tapecell.estimator import _kernels, fit
+from tapecell.estimator.synthetic import SyntheticOptions, make_capture
 
 
 @pytest.fixture(scope="module", params=[(21, False), (22, True)], ids=["plain", "occluded-distorted"])

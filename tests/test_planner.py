@@ -4,14 +4,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.arm import ProtectiveStopError
-from cell.fake_arm import FakeArm
-from cell.kinematics import fk
-from cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, PlanRefused, Speeds, TipFrame,
+from tapecell.cell.arm import ProtectiveStopError
+from tapecell.cell.fake_arm import FakeArm
+from tapecell.cell.kinematics import fk
+from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, PlanRefused, Speeds, TipFrame,
                           execute_plan, plan_grasp)
-from cell.poses import pose6_to_matrix, pose_distance
-from cell.safety import SafetyError, SafetyLimits
-from estimator.tape import TapeSpec, forward_kinematics
+from tapecell.cell.poses import pose6_to_matrix, pose_distance
+from tapecell.cell.safety import SafetyError, SafetyLimits
+from tapecell.estimator.tape import TapeSpec, forward_kinematics
 
 LIMITS = SafetyLimits(workspace_min=[-0.30, 0.10, 0.05], workspace_max=[0.60, 0.90, 0.70],
                       max_tcp_speed=0.25, max_tcp_accel=1.2, max_joint_speed=1.0,

@@ -4,16 +4,16 @@ import json
 import numpy as np
 import pytest
 
-from cell.cli import main
-from cell.kinematics import fk
-from cell.poses import pose6_to_matrix
-from cell.probe import PROBE_LABELS, ProbeError, guided_probe
+from tapecell.cli.main import main
+from tapecell.cell.kinematics import fk
+from tapecell.cell.poses import pose6_to_matrix
+from tapecell.cell.probe import PROBE_LABELS, ProbeError, guided_probe
 from fakes import FakeRobot, install_fake_rtde
-from sim.config import load_cell_config
+from tapecell.cell.config import load_cell_config
 
 
 def test_probe_sim_measures_the_true_tip():
-    from cell.commands.probe import probe_sim
+    from tapecell.cli.commands.probe import probe_sim
 
     lines = []
     result = probe_sim(load_cell_config(), seed=1, n_cameras=2, log=lines.append)
@@ -90,7 +90,7 @@ def test_real_probe_without_execute_connects_nothing(monkeypatch, rtde_log, capt
 
 
 def test_guided_probe_with_nothing_recorded_is_an_error():
-    from cell.fake_arm import FakeArm
+    from tapecell.cell.fake_arm import FakeArm
 
     arm = FakeArm()
     with arm:

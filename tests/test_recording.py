@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from cell import recording as rec
-from estimator.capture import Capture, Truth, View
-from estimator.errors import TapecellError
-from estimator.geometry import Camera, look_at, rot_x, rot_z
-from estimator.result import Estimate
-from estimator.tape import TapeSpec, forward_kinematics
+from tapecell.cell import recording as rec
+from tapecell.estimator.capture import Capture, Truth, View
+from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.geometry import Camera, look_at, rot_x, rot_z
+from tapecell.estimator.result import Estimate
+from tapecell.estimator.tape import TapeSpec, forward_kinematics
 
 W, H = 64, 48
 

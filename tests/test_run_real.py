@@ -7,10 +7,10 @@ from pathlib import Path
 import cv2
 import pytest
 
-from cell.cli import main
-from estimator.capture import save_cameras
-from sim.cell import SimCell
-from sim.config import default_cell_path, load_cell_config
+from tapecell.cli.main import main
+from tapecell.estimator.capture import save_cameras
+from tapecell.sim.cell import SimCell
+from tapecell.cell.config import default_cell_path, load_cell_config
 
 
 @pytest.fixture(scope="module")
@@ -28,11 +28,11 @@ def real_like(tmp_path_factory) -> tuple[Path, Path]:
 
 @pytest.fixture
 def no_robot(monkeypatch):
-    import cell.ur
+    from tapecell.cell import ur as cell_ur
 
     def refuse(*a, **k):
         raise AssertionError("the dry run must not touch the robot")
-    monkeypatch.setattr(cell.ur, "URArm", refuse)
+    monkeypatch.setattr(cell_ur, "URArm", refuse)
 
 
 def test_dry_run_plans_and_moves_nothing(real_like, no_robot, tmp_path, capsys):
@@ -68,11 +68,11 @@ def test_missing_images_is_one_line(real_like, tmp_path, capsys):
 
 
 def _expected_plan(images, cameras, q_start):
-    from cell.commands.run import grab_capture
-    from cell.planner import GraspParams, GripperGeometry, TipFrame, plan_grasp
-    from cell.safety import SafetyLimits
-    from estimator import estimate
-    from estimator.capture import load_cameras
+    from tapecell.cli.commands.run import grab_capture
+    from tapecell.cell.planner import GraspParams, GripperGeometry, TipFrame, plan_grasp
+    from tapecell.cell.safety import SafetyLimits
+    from tapecell.estimator import estimate
+    from tapecell.estimator.capture import load_cameras
 
     cfg = load_cell_config()
     est = estimate(grab_capture(cfg, load_cameras(cameras), images))

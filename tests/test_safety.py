@@ -6,9 +6,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from cell.fake_arm import FakeArm
-from cell.kinematics import fk
-from cell.safety import (SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
+from tapecell.cell.fake_arm import FakeArm
+from tapecell.cell.kinematics import fk
+from tapecell.cell.safety import (SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
                          check_points_flange, segment_hits_box)
 
 Q0 = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])    # flange about (-0.13, 0.34, 0.35), down
@@ -37,7 +37,7 @@ def test_from_config_reads_the_cell_files_section():
 
 
 def test_the_cell_file_limits_load():
-    config = pytest.importorskip("sim.config")
+    config = pytest.importorskip("tapecell.cell.config")
     limits = SafetyLimits.from_config(config.load_cell_config().limits)
     assert np.all(limits.workspace_min < limits.workspace_max)
 
@@ -100,8 +100,8 @@ def test_joint_moves_checked_along_the_joint_path():
 
 def test_joint_move_sweeping_through_the_part_is_refused():
     # Swing the base joint with the tool low over the table: the TCP passes through the part.
-    from cell.kinematics import ik_nearest
-    from cell.poses import pose6_to_matrix
+    from tapecell.cell.kinematics import ik_nearest
+    from tapecell.cell.poses import pose6_to_matrix
 
     flange_from_tcp = pose6_to_matrix(GRIPPER)
     a = ik_nearest(pose6_to_matrix([-0.20, 0.50, 0.22, *DOWN]), Q0)
@@ -142,8 +142,8 @@ def test_safe_arm_stops_the_inner_arm_when_the_block_fails():
 
 
 def test_checks_start_from_where_the_arm_really_is():
-    from cell.kinematics import ik_nearest
-    from cell.poses import pose6_to_matrix
+    from tapecell.cell.kinematics import ik_nearest
+    from tapecell.cell.poses import pose6_to_matrix
 
     q_beside = ik_nearest(pose6_to_matrix([-0.15, 0.50, 0.10, *DOWN]), Q0)
     arm = FakeArm(q0=q_beside)

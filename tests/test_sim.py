@@ -1,14 +1,14 @@
 """The simulated cell: scene smoke tests, determinism, camera conversion, masks, arm."""
 from __future__ import annotations
 
-import sim  # noqa: F401,I001  (first: sets MUJOCO_GL=egl before mujoco is imported)
+from tapecell import sim  # noqa: F401,I001  (first: sets MUJOCO_GL=egl before mujoco is imported)
 import mujoco
 import numpy as np
 import pytest
 
-from sim.cell import SimCell, camera_from_mujoco
-from sim.config import load_cell_config
-from sim.scene import build_spec
+from tapecell.sim.cell import SimCell, camera_from_mujoco
+from tapecell.cell.config import load_cell_config
+from tapecell.sim.scene import build_spec
 
 CFG = load_cell_config()
 
@@ -129,7 +129,7 @@ def test_rgb_segmentation_matches_true_mask(cell3):
 def test_arm_hiding_the_tape_is_ignored():
     import cv2
 
-    from sim.arm import SimArm
+    from tapecell.sim.arm import SimArm
 
     with SimCell(CFG, 2, n_cameras=2) as cell:
         arm = SimArm(cell, "gripper")

@@ -4,9 +4,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cell.cli import main
-from sim.config import SimConfigError, default_cell_path, load_cell_config
-from sim.ur5e import IKError, dh_fk, ik
+from tapecell.cli.main import main
+from tapecell.cell.config import CellConfigError, default_cell_path, load_cell_config
+from tapecell.cell.kinematics import fk as dh_fk
+from tapecell.sim.ur5e import IKError, ik
 
 TEXT = default_cell_path().read_text()
 
@@ -27,33 +28,33 @@ def test_bundled_cell_file_loads():
 
 def test_unknown_key_is_named(tmp_path):
     p = _write(tmp_path, TEXT.replace("[tools.needle]\n", "[tools.needle]\nlenght = 0.1\n"))
-    with pytest.raises(SimConfigError, match=r"cell.toml: unknown key 'tools.needle.lenght'"):
+    with pytest.raises(CellConfigError, match=r"cell.toml: unknown key 'tools.needle.lenght'"):
         load_cell_config(p)
 
 
 def test_unknown_section_is_named(tmp_path):
-    with pytest.raises(SimConfigError, match=r"unknown key 'gripperz'"):
+    with pytest.raises(CellConfigError, match=r"unknown key 'gripperz'"):
         load_cell_config(_write(tmp_path, TEXT + "\n[gripperz]\nx = 1\n"))
 
 
 def test_missing_tool_offset_is_named(tmp_path):
     text = TEXT.replace("flange_from_tcp = [0.0, 0.0, 0.12, 0.0, 0.0, 0.0]\n", "")
-    with pytest.raises(SimConfigError, match=r"missing key 'tools.needle.flange_from_tcp'"):
+    with pytest.raises(CellConfigError, match=r"missing key 'tools.needle.flange_from_tcp'"):
         load_cell_config(_write(tmp_path, text))
 
 
 def test_camera_that_does_not_see_the_tape(tmp_path):
     text = TEXT.replace("target = [0.0, 0.50, 0.175]", "target = [0.0, 0.0, 0.175]", 1)
-    with pytest.raises(SimConfigError, match=r"camera 'cam0' does not see the tape"):
+    with pytest.raises(CellConfigError, match=r"camera 'cam0' does not see the tape"):
         load_cell_config(_write(tmp_path, text))
 
 
 def test_wrong_type_and_bad_toml(tmp_path):
-    with pytest.raises(SimConfigError, match=r"'tape.plates' must be an integer"):
+    with pytest.raises(CellConfigError, match=r"'tape.plates' must be an integer"):
         load_cell_config(_write(tmp_path, TEXT.replace("plates = 30 ", 'plates = "30" ')))
-    with pytest.raises(SimConfigError, match="not valid TOML"):
+    with pytest.raises(CellConfigError, match="not valid TOML"):
         load_cell_config(_write(tmp_path, TEXT + "\n[[["))
-    with pytest.raises(SimConfigError, match="not found"):
+    with pytest.raises(CellConfigError, match="not found"):
         load_cell_config(tmp_path / "nope.toml")
 
 
@@ -62,14 +63,14 @@ def test_camera_devices_are_indices_or_urls(tmp_path):
     cfg = load_cell_config(_write(tmp_path, TEXT.replace("camera_devices = [0, 1, 2]", devices)))
     assert cfg.robot.camera_devices == (0, "rtsp://192.168.1.20/stream1", "/dev/video4")
     assert load_cell_config().robot.camera_devices == (0, 1, 2)
-    with pytest.raises(SimConfigError, match=r"'robot.camera_devices\[1\]' must be an integer or a string"):
+    with pytest.raises(CellConfigError, match=r"'robot.camera_devices\[1\]' must be an integer or a string"):
         load_cell_config(_write(tmp_path, TEXT.replace("camera_devices = [0, 1, 2]", "camera_devices = [0, 1.5]")))
 
 
 def test_home_is_inside_the_limits_with_every_tool():
-    from cell.fake_arm import FakeArm
-    from cell.planner import REFERENCE_JOINTS
-    from cell.safety import SafeArm, SafetyLimits
+    from tapecell.cell.fake_arm import FakeArm
+    from tapecell.cell.planner import REFERENCE_JOINTS
+    from tapecell.cell.safety import SafeArm, SafetyLimits
 
     cfg = load_cell_config()
     limits = SafetyLimits.from_config(cfg.limits)
@@ -81,14 +82,14 @@ def test_home_is_inside_the_limits_with_every_tool():
 
 
 def test_grasp_lift_mode_and_joint_accel_reach_the_planner_and_limits(tmp_path):
-    from cell.planner import GraspParams
-    from cell.safety import SafetyLimits
+    from tapecell.cell.planner import GraspParams
+    from tapecell.cell.safety import SafetyLimits
 
     text = TEXT.replace('lift_mode = "arc"', 'lift_mode = "peel"').replace("max_joint_accel = 1.4 ", "max_joint_accel = 1.1 ")
     cfg = load_cell_config(_write(tmp_path, text))
     assert GraspParams.from_config(cfg.grasp).lift_mode == "peel"
     assert SafetyLimits.from_config(cfg.limits).max_joint_accel == 1.1
-    with pytest.raises(SimConfigError, match=r"'grasp.lift_mode' must be \"arc\" or \"peel\""):
+    with pytest.raises(CellConfigError, match=r"'grasp.lift_mode' must be \"arc\" or \"peel\""):
         load_cell_config(_write(tmp_path, TEXT.replace('lift_mode = "arc"', 'lift_mode = "yank"')))
 
 
@@ -133,8 +134,8 @@ def test_ik_round_trip_and_unreachable():
 
 @pytest.fixture(scope="module")
 def arm():
-    from sim.arm import SimArm
-    from sim.cell import SimCell
+    from tapecell.sim.arm import SimArm
+    from tapecell.sim.cell import SimCell
 
     with SimCell(load_cell_config(), 0, n_cameras=2) as cell:
         yield SimArm(cell)
@@ -184,7 +185,7 @@ def test_gripper_pinches_and_lifts_the_tape(arm):
 
 
 def test_cli_capture_and_cameras(tmp_path, capsys):
-    from estimator.capture import load_cameras, load_capture
+    from tapecell.estimator.capture import load_cameras, load_capture
 
     assert main(["sim", "capture", "--seed", "4", "--cameras", "3", "--rgb", "--out", str(tmp_path / "cap")]) == 0
     cap = load_capture(tmp_path / "cap")

@@ -19,7 +19,7 @@ from typing import Any, Callable, Iterable, TextIO
 
 import numpy as np
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 RESULTS = "results.jsonl"
 
@@ -174,7 +174,7 @@ class Progress:
 
 
 def _worker(job: EpisodeJob) -> dict[str, Any]:
-    from cell.episode import run_episode_safely
+    from .episode import run_episode_safely
     return run_episode_safely(job.seed, job.cameras, job.recording, job.config)
 
 

@@ -5,10 +5,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from estimator.capture import Capture, load_capture
-from estimator.errors import TapecellError
-from estimator.io import atomic_write_json, to_json
-from estimator.metrics import errors
+from tapecell.estimator.capture import Capture, load_capture
+from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.io import atomic_write_json, to_json
+from tapecell.estimator.metrics import errors
 
 HELP = """Fit the tape model to capture directories (tape-capture/1).
 
@@ -58,13 +58,13 @@ def summary_line(name: str, capture: Capture, est) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from estimator import estimate  # the fitting code is heavy: load it only when needed
+    from tapecell.estimator import estimate  # the fitting code is heavy: load it only when needed
 
     seg = _segmentation_overrides(args.segment)
     single = len(args.captures) == 1 and args.out is None
     stream = None
     if args.rrd is not None:
-        from cell.recording import close_recording, fit_logger, log_fit_result, open_recording
+        from tapecell.cell.recording import close_recording, fit_logger, log_fit_result, open_recording
         stream = open_recording(args.rrd, app_id="tapecell-estimate")
     failed = 0
     try:

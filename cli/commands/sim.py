@@ -5,7 +5,7 @@ import argparse
 import os
 from pathlib import Path
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 
 def register(subparsers) -> None:
@@ -40,14 +40,14 @@ def register(subparsers) -> None:
 
 
 def _cell(args):
-    from sim.cell import SimCell
-    from sim.config import load_cell_config
+    from tapecell.sim.cell import SimCell
+    from tapecell.cell.config import load_cell_config
 
     return SimCell(load_cell_config(args.config), getattr(args, "seed", 0), n_cameras=args.cameras)
 
 
 def run_capture(args) -> int:
-    from estimator.capture import save_capture
+    from tapecell.estimator.capture import save_capture
 
     with _cell(args) as cell:
         cap = cell.capture(rgb=args.rgb)
@@ -60,7 +60,7 @@ def run_capture(args) -> int:
 
 
 def run_cameras(args) -> int:
-    from estimator.capture import save_cameras
+    from tapecell.estimator.capture import save_cameras
 
     with _cell(args) as cell:
         save_cameras(cell.cameras(), args.out)
@@ -71,7 +71,7 @@ def run_cameras(args) -> int:
 def run_snapshot(args) -> int:
     import cv2
 
-    from estimator.io import atomic_write_bytes
+    from tapecell.estimator.io import atomic_write_bytes
 
     out = Path(args.out)
     if out.exists() and not out.is_dir():

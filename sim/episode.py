@@ -14,10 +14,10 @@ from typing import Any
 
 import numpy as np
 
-from estimator import estimate
-from estimator.capture import Capture, View, load_cameras
-from estimator.errors import TapecellError
-from estimator.metrics import errors
+from tapecell.estimator import estimate
+from tapecell.estimator.capture import Capture, View, load_cameras
+from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.metrics import errors
 
 MIN_LIFT_M = 0.020
 """The gripper must rise at least this far with the tape for a success."""
@@ -52,12 +52,12 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
                 config: Path | None = None) -> dict[str, Any]:
     """Run one episode; returns its `tape-episode/1` dict. Errors the planner or the arm
     raise become the failure reason; anything else propagates."""
-    from sim.arm import SimArm
-    from sim.cell import SimCell
-    from sim.config import load_cell_config
+    from .arm import SimArm
+    from .cell import SimCell
+    from tapecell.cell.config import load_cell_config
 
-    from .planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, plan_grasp
-    from .safety import SafetyLimits
+    from tapecell.cell.planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, plan_grasp
+    from tapecell.cell.safety import SafetyLimits
 
     cfg = load_cell_config(config)
     times: dict[str, float] = {}
@@ -65,7 +65,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
                            "success": False, "failure": None, "tip_error_mm": None, "normal_error_deg": None}
     stream = cell = None
     if recording is not None:
-        from . import recording as rec
+        from tapecell.cell import recording as rec
         stream = rec.open_recording(recording, app_id="tapecell-episode",
                                     camera_names=[p.name for p in cfg.camera_placements(cameras)])
     try:
@@ -134,17 +134,17 @@ def _resolve(cfg, path: str) -> Path:
 
 def _execute_and_check(cell, sim_arm, plan, limits, stream) -> EpisodeOutcome:
     """Run the plan on the simulated arm and judge the grasp from the physics."""
-    from .planner import Speeds, execute_plan
-    from .arm import ArmError
-    from .safety import SafetyError
-    from .sim_arm import SimArmAdapter
+    from tapecell.cell.planner import Speeds, execute_plan
+    from tapecell.cell.arm import ArmError
+    from tapecell.cell.safety import SafetyError
+    from .arm_adapter import SimArmAdapter
 
     out = EpisodeOutcome()
     state: dict[str, Any] = {}
 
     def on_step(step, arm) -> None:
         if stream is not None:
-            from . import recording as rec
+            from tapecell.cell import recording as rec
             rec.log_arm_state(stream, cell.data.time, sim_arm.tcp_pose("flange"), sim_arm.joints())
             rec.log_gripper(stream, cell.data.time, sim_arm.gripper_opening(), step.action)
         if step.action == "close_gripper":
@@ -192,9 +192,9 @@ ARM_LOG_PERIOD_S = 0.05
 def _record_motion(cell, sim_arm, stream) -> None:
     """Log the arm (flange, joints, DH link frames) every ``ARM_LOG_PERIOD_S`` of sim time
     while it moves, through the cell's step hook."""
-    from sim.ur5e import dh_frames
+    from tapecell.cell.kinematics import dh_frames
 
-    from . import recording as rec
+    from tapecell.cell import recording as rec
 
     last = [-np.inf]
 

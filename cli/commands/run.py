@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 HELP = """Run the real cell once: grab one image per camera (OpenCV VideoCapture devices from
 the cell file's [robot] camera_devices, or --images DIR holding DIR/000/<camera>.png),
@@ -47,12 +47,12 @@ def grab_capture(cfg, cameras, images: Path | None):
     """One image per camera, segmented into a capture of the cell's tape model."""
     import numpy as np
 
-    from estimator.capture import Capture, View
-    from estimator.errors import CaptureError
-    from estimator.segment import segment_tape
-    from sim.tape_shape import tape_spec
+    from tapecell.estimator.capture import Capture, View
+    from tapecell.estimator.errors import CaptureError
+    from tapecell.estimator.segment import segment_tape
+    from tapecell.cell.config import tape_spec
 
-    from ..cameras_real import FolderCameras, VideoCameras
+    from tapecell.cell.cameras_real import FolderCameras, VideoCameras
 
     names = [c.name for c in cameras]
     if images is not None:
@@ -77,13 +77,13 @@ def grab_capture(cfg, cameras, images: Path | None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from estimator import estimate
-    from estimator.capture import load_cameras, save_capture
-    from sim.config import load_cell_config
+    from tapecell.estimator import estimate
+    from tapecell.estimator.capture import load_cameras, save_capture
+    from tapecell.cell.config import load_cell_config
 
-    from .. import recording as rec
-    from ..planner import GraspParams, GripperGeometry, Speeds, TipFrame, execute_plan, plan_grasp
-    from ..safety import SafetyLimits
+    from tapecell.cell import recording as rec
+    from tapecell.cell.planner import GraspParams, GripperGeometry, Speeds, TipFrame, execute_plan, plan_grasp
+    from tapecell.cell.safety import SafetyLimits
 
     cfg = load_cell_config(args.config)
     cameras = load_cameras(args.cameras)
@@ -116,9 +116,9 @@ def run(args: argparse.Namespace) -> int:
             make_plan(None)
             print("nothing moved (add --execute to run the plan on the arm)")
             return 0
-        from ..ur import URArm
+        from tapecell.cell.ur import URArm
         arm = URArm(cfg.robot.host, cfg.robot.port, limits, flange_from_tool=cfg.tools.gripper.flange_from_tcp)
-        from ..poses import pose6_to_matrix
+        from tapecell.cell.poses import pose6_to_matrix
         with arm:
             plan = make_plan(arm.joints())
             if not confirm():

@@ -18,9 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.io import atomic_write_json
+from tapecell.estimator.io import atomic_write_json
 
-from ..probe import (PROBE_LABELS, ProbeError, ProbeParams, SimProber, approach_normal, estimate_errors,
+from tapecell.cell.probe import (PROBE_LABELS, ProbeError, ProbeParams, approach_normal, estimate_errors,
                      guided_probe, tape_points, truth_fragment)
 
 
@@ -41,9 +41,10 @@ def register(subparsers) -> None:
 
 def probe_sim(cell, seed: int, n_cameras: int, log=print) -> dict:
     """Capture, estimate, probe; returns a dict with measured points and the errors [m]."""
-    from estimator import estimate
-    from sim.arm import SimArm
-    from sim.cell import SimCell
+    from tapecell.estimator import estimate
+    from tapecell.sim.arm import SimArm
+    from tapecell.sim.prober import SimProber
+    from tapecell.sim.cell import SimCell
 
     with SimCell(cell, seed=seed, n_cameras=n_cameras, tool="needle") as sim:
         capture = sim.capture()
@@ -80,8 +81,8 @@ def probe_sim(cell, seed: int, n_cameras: int, log=print) -> dict:
 
 
 def probe_real(cell, args, prompt=None, log=print) -> int:
-    from ..safety import SafetyLimits
-    from ..ur import URArm
+    from tapecell.cell.safety import SafetyLimits
+    from tapecell.cell.ur import URArm
 
     if args.capture is None:
         raise ProbeError("--capture DIR is needed on the real cell (the capture the probed points belong to)")
@@ -102,7 +103,7 @@ def probe_real(cell, args, prompt=None, log=print) -> int:
 
 
 def run(args) -> int:
-    from sim.config import load_cell_config
+    from tapecell.cell.config import load_cell_config
 
     cell = load_cell_config(None if args.sim else args.config)
     if not args.sim:

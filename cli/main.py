@@ -1,6 +1,6 @@
 """The ``tapecell`` command.
 
-Each subcommand lives in ``cell/commands/<name>.py`` and exposes ``register(subparsers)``,
+Each subcommand lives in ``cli/commands/<name>.py`` and exposes ``register(subparsers)``,
 which adds its parser and sets ``func``. Errors the user can cause (``TapecellError``)
 print one line and exit with status 2; a Ctrl-C exits with 130.
 """
@@ -10,7 +10,7 @@ import argparse
 import importlib
 import sys
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 COMMANDS = ["estimate", "calibrate", "sim", "episode", "run", "probe"]
 
@@ -24,7 +24,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
-        importlib.import_module(f"cell.commands.{name}").register(sub)
+        importlib.import_module(f"tapecell.cli.commands.{name}").register(sub)
     return parser
 
 

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from .arm import Arm, ArmError, ProtectiveStopError
-from .poses import matrix_to_pose6, pose6_to_matrix
+from tapecell.cell.arm import Arm, ArmError, ProtectiveStopError
+from tapecell.cell.poses import matrix_to_pose6, pose6_to_matrix
 
 
 class SimArmAdapter(Arm):
@@ -67,8 +67,8 @@ class SimArmAdapter(Arm):
         self._hold()
 
     def _guarded(self, move, what: str) -> None:
-        from sim.arm import SimArmError
-        from sim.ur5e import IKError
+        from .arm import SimArmError
+        from .ur5e import IKError
 
         if self._protective:
             raise ProtectiveStopError(f"{self.name} is in a protective stop")

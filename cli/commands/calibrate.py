@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estimator.capture import save_cameras
-from estimator.errors import TapecellError
+from tapecell.estimator.capture import save_cameras
+from tapecell.estimator.errors import TapecellError
 
-from ..calibration import (CalibrationResult, PlannedPose, camera_errors, plan_poses,
+from tapecell.cell.calibration import (CalibrationResult, PlannedPose, camera_errors, plan_poses,
                            run_calibration)
 
 
@@ -63,11 +63,11 @@ def calibrate_sim(cell, seed: int = 0, n_cameras: int = 2, rec=None, log=print):
     """Calibrate the simulated cell; returns (CalibrationResult, true cameras). The arm is
     the physically simulated UR5e behind the same Arm interface and safety checks as on the
     real cell: it drives through every pose and the cameras render where it settled."""
-    from sim.arm import SimArm
-    from sim.cell import SimCell
+    from tapecell.sim.arm import SimArm
+    from tapecell.sim.cell import SimCell
 
-    from ..safety import SafeArm, SafetyLimits
-    from ..sim_arm import SimArmAdapter
+    from tapecell.cell.safety import SafeArm, SafetyLimits
+    from tapecell.sim.arm_adapter import SimArmAdapter
 
     poses = plan_poses(cell, n_cameras)
     with SimCell(cell, seed=seed, n_cameras=n_cameras, tool="plate") as sim:
@@ -97,7 +97,7 @@ def report(result: CalibrationResult, true=None, log=print) -> None:
 
 # ----------------------------------------------------------------------------- real
 def print_plan(cell, poses: list[PlannedPose], log=print) -> None:
-    from ..safety import SafetyLimits, check_joint_move
+    from tapecell.cell.safety import SafetyLimits, check_joint_move
 
     limits = SafetyLimits.from_config(cell.limits)
     q_prev = np.asarray(cell.arm.home_joints, float)
@@ -114,15 +114,15 @@ def print_plan(cell, poses: list[PlannedPose], log=print) -> None:
 
 
 def _check_points(cell):
-    from ..safety import check_points_flange
+    from tapecell.cell.safety import check_points_flange
 
     return check_points_flange(cell.tools.plate.flange_from_tcp)
 
 
 def calibrate_real(cell, args, rec=None, log=print) -> CalibrationResult:
-    from ..cameras_real import FolderCameras, VideoCameras
-    from ..safety import SafetyLimits
-    from ..ur import URArm
+    from tapecell.cell.cameras_real import FolderCameras, VideoCameras
+    from tapecell.cell.safety import SafetyLimits
+    from tapecell.cell.ur import URArm
 
     n = len(cell.robot.camera_devices)
     poses = plan_poses(cell, min(n, len(cell.cameras.camera)))
@@ -147,9 +147,9 @@ def calibrate_real(cell, args, rec=None, log=print) -> CalibrationResult:
 
 # ------------------------------------------------------------------------------ main
 def run(args) -> int:
-    from sim.config import load_cell_config
+    from tapecell.cell.config import load_cell_config
 
-    from ..recording import close_recording, discard_recording, open_recording
+    from tapecell.cell.recording import close_recording, discard_recording, open_recording
 
     cell = load_cell_config(None if args.sim else args.config)
     rec = open_recording(args.rrd, "tapecell-calibrate") if args.rrd else None

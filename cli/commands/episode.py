@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from estimator.errors import TapecellError
+from tapecell.estimator.errors import TapecellError
 
 EPISODE_HELP = """Run one simulated grasp episode: randomise the tape (seed), park the arm,
 render, segment and estimate, plan a grasp at the tip, execute it with the simulated UR5e,
@@ -49,8 +49,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_one(args: argparse.Namespace) -> int:
-    from cell.episode import run_episode
-    from sim.config import load_cell_config
+    from tapecell.sim.episode import run_episode
+    from tapecell.cell.config import load_cell_config
 
     load_cell_config(args.config)  # a bad cell file is one clear error before any work
     doc = run_episode(args.seed, args.cameras, args.rrd, args.config)
@@ -63,8 +63,8 @@ def run_one(args: argparse.Namespace) -> int:
 
 
 def run_many(args: argparse.Namespace) -> int:
-    from cell.episodes import run_episodes, summarize
-    from sim.config import load_cell_config
+    from tapecell.sim.episodes import run_episodes, summarize
+    from tapecell.cell.config import load_cell_config
 
     if args.n < 1:
         raise TapecellError(f"--n must be 1 or more, got {args.n}")

@@ -3,7 +3,7 @@
 One file describes the whole cell: the simulated scene (table, part, tape, cameras, arm,
 tools) and what the real cell needs (robot address, limits, calibration, grasp). Every
 key is checked: an unknown or missing key, a wrong type or length, or a camera that does
-not see the tape is one :class:`SimConfigError` naming the file and the key.
+not see the tape is one :class:`CellConfigError` naming the file and the key.
 
 Vectors are tuples of floats (metres, radians unless a key ends in ``_deg``); convert
 with ``np.asarray`` where used.
@@ -20,15 +20,16 @@ from typing import Any
 
 import numpy as np
 
-from estimator.errors import TapecellError
-from estimator.geometry import look_at
+from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.geometry import look_at
+from tapecell.estimator.tape import TapeSpec
 
 Vec3 = tuple[float, float, float]
 Pose6 = tuple[float, float, float, float, float, float]
 Rgba = tuple[float, float, float, float]
 
 
-class SimConfigError(TapecellError):
+class CellConfigError(TapecellError):
     """The cell file is missing, unreadable or inconsistent."""
 
 
@@ -183,7 +184,7 @@ class ToolsSection:
         if tool == "flange":
             return np.eye(4)
         if tool not in TOOL_NAMES:
-            raise SimConfigError(f"unknown tool '{tool}' (known: flange, {', '.join(TOOL_NAMES)})")
+            raise CellConfigError(f"unknown tool '{tool}' (known: flange, {', '.join(TOOL_NAMES)})")
         return pose_to_matrix(getattr(self, tool).flange_from_tcp)
 
 
@@ -267,18 +268,17 @@ class CellConfig:
 
     def camera_placements(self, n_cameras: int) -> tuple[CameraPlacement, ...]:
         if not 1 <= n_cameras <= len(self.cameras.camera):
-            raise SimConfigError(f"{self.source}: asked for {n_cameras} cameras, the cell has "
+            raise CellConfigError(f"{self.source}: asked for {n_cameras} cameras, the cell has "
                                  f"{len(self.cameras.camera)}")
         return self.cameras.camera[:n_cameras]
 
 
 # ------------------------------------------------------------------------------ loading
 def default_cell_path() -> Path:
-    """The bundled ``cell.toml``: ``assets/`` next to the package in a checkout, else the
-    installed ``tapecell_assets`` package."""
-    here = Path(__file__).resolve().parent.parent / "assets" / "cell.toml"
-    if here.exists():
-        return here
+    """The bundled ``cell.toml`` (``assets/`` in a checkout, ``tapecell.assets`` installed)."""
+    from tapecell.assets import asset_path
+
+    return asset_path("cell.toml")
     try:
         import tapecell_assets  # installed layout (pyproject maps assets/ to this name)
         return Path(tapecell_assets.__file__).resolve().parent / "cell.toml"
@@ -293,11 +293,11 @@ def load_cell_config(path: str | Path | None = None) -> CellConfig:
         with open(path, "rb") as f:
             doc = tomllib.load(f)
     except FileNotFoundError:
-        raise SimConfigError(f"{path}: cell file not found") from None
+        raise CellConfigError(f"{path}: cell file not found") from None
     except OSError as e:
-        raise SimConfigError(f"{path}: cannot read cell file ({e.strerror})") from None
+        raise CellConfigError(f"{path}: cannot read cell file ({e.strerror})") from None
     except tomllib.TOMLDecodeError as e:
-        raise SimConfigError(f"{path}: not valid TOML ({e})") from None
+        raise CellConfigError(f"{path}: not valid TOML ({e})") from None
     cfg = _build(CellConfig, doc, str(path), "", skip={"source"})
     cfg = dataclasses.replace(cfg, source=str(path))
     _check(cfg)
@@ -308,13 +308,13 @@ def _build(cls: type, table: Any, source: str, where: str, skip: frozenset | set
     """Build dataclass ``cls`` from a TOML table, rejecting unknown and missing keys."""
     what = f"[{where}]" if where else "the top level"
     if not isinstance(table, dict):
-        raise SimConfigError(f"{source}: {where or 'document'} must be a table")
+        raise CellConfigError(f"{source}: {where or 'document'} must be a table")
     hints = typing.get_type_hints(cls)
     names = [f.name for f in dataclasses.fields(cls) if f.name not in skip]
     unknown = sorted(set(table) - set(names))
     if unknown:
         key = f"{where}.{unknown[0]}" if where else unknown[0]
-        raise SimConfigError(f"{source}: unknown key '{key}' in {what} (known: {', '.join(names)})")
+        raise CellConfigError(f"{source}: unknown key '{key}' in {what} (known: {', '.join(names)})")
     values = {}
     for f in dataclasses.fields(cls):
         if f.name in skip:
@@ -323,7 +323,7 @@ def _build(cls: type, table: Any, source: str, where: str, skip: frozenset | set
         if f.name not in table:
             if f.default is not dataclasses.MISSING:
                 continue
-            raise SimConfigError(f"{source}: missing key '{key}'")
+            raise CellConfigError(f"{source}: missing key '{key}'")
         values[f.name] = _convert(hints[f.name], table[f.name], source, key)
     return cls(**values)
 
@@ -333,38 +333,38 @@ def _convert(tp: Any, value: Any, source: str, key: str) -> Any:
         return _build(tp, value, source, key)
     if tp is bool:
         if not isinstance(value, bool):
-            raise SimConfigError(f"{source}: '{key}' must be true or false, got {value!r}")
+            raise CellConfigError(f"{source}: '{key}' must be true or false, got {value!r}")
         return value
     if tp is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise SimConfigError(f"{source}: '{key}' must be an integer, got {value!r}")
+            raise CellConfigError(f"{source}: '{key}' must be an integer, got {value!r}")
         return value
     if tp is float:
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-            raise SimConfigError(f"{source}: '{key}' must be a number, got {value!r}")
+            raise CellConfigError(f"{source}: '{key}' must be a number, got {value!r}")
         return float(value)
     if tp is str:
         if not isinstance(value, str):
-            raise SimConfigError(f"{source}: '{key}' must be a string, got {value!r}")
+            raise CellConfigError(f"{source}: '{key}' must be a string, got {value!r}")
         return value
     if typing.get_origin(tp) in (typing.Union, types.UnionType):
         options = typing.get_args(tp)
         for option in options:
             try:
                 return _convert(option, value, source, key)
-            except SimConfigError:
+            except CellConfigError:
                 continue
         names = " or ".join({int: "an integer", float: "a number", str: "a string", bool: "true or false"}
                             .get(o, str(o)) for o in options)
-        raise SimConfigError(f"{source}: '{key}' must be {names}, got {value!r}")
+        raise CellConfigError(f"{source}: '{key}' must be {names}, got {value!r}")
     if typing.get_origin(tp) is tuple:
         args = typing.get_args(tp)
         if not isinstance(value, list):
-            raise SimConfigError(f"{source}: '{key}' must be a list, got {value!r}")
+            raise CellConfigError(f"{source}: '{key}' must be a list, got {value!r}")
         if len(args) == 2 and args[1] is Ellipsis:
             return tuple(_convert(args[0], v, source, f"{key}[{i}]") for i, v in enumerate(value))
         if len(value) != len(args):
-            raise SimConfigError(f"{source}: '{key}' must have {len(args)} entries, got {len(value)}")
+            raise CellConfigError(f"{source}: '{key}' must have {len(args)} entries, got {len(value)}")
         return tuple(_convert(a, v, source, f"{key}[{i}]") for i, (a, v) in enumerate(zip(args, value)))
     raise TypeError(f"cell config field type {tp} not supported")  # a programming error
 
@@ -375,7 +375,7 @@ def _check(cfg: CellConfig) -> None:
 
     def need(ok: bool, msg: str) -> None:
         if not ok:
-            raise SimConfigError(f"{src}: {msg}")
+            raise CellConfigError(f"{src}: {msg}")
 
     s, t = cfg.sim, cfg.tape
     need(0 < s.timestep <= 0.005, "'sim.timestep' must be in (0, 0.005] s")
@@ -417,11 +417,11 @@ def _check_camera_sees_tape(cfg: CellConfig, cam: CameraPlacement) -> None:
     pc = (corners - np.asarray(cam.position)) @ world_from_cv
     m = c.margin_px
     if np.any(pc[:, 2] <= 0):
-        raise SimConfigError(f"{cfg.source}: camera '{cam.name}' does not see the tape (it is behind the camera)")
+        raise CellConfigError(f"{cfg.source}: camera '{cam.name}' does not see the tape (it is behind the camera)")
     u = c.fx * pc[:, 0] / pc[:, 2] + 0.5 * c.width - 0.5
     v = c.fx * pc[:, 1] / pc[:, 2] + 0.5 * c.height - 0.5
     if np.any((u < m) | (u > c.width - 1 - m) | (v < m) | (v > c.height - 1 - m)):
-        raise SimConfigError(f"{cfg.source}: camera '{cam.name}' does not see the tape (it leaves the "
+        raise CellConfigError(f"{cfg.source}: camera '{cam.name}' does not see the tape (it leaves the "
                              f"{c.width}x{c.height} image; corners at u={np.round(u).tolist()}, "
                              f"v={np.round(v).tolist()})")
 
@@ -437,11 +437,11 @@ def look_at_world_from_cv(position: Any, target: Any, up: Any, source: str = "",
     for a camera at ``position`` looking at ``target`` with ``up`` up in the image."""
     z = np.asarray(target, float) - np.asarray(position, float)
     if np.linalg.norm(z) < 1e-9:
-        raise SimConfigError(f"{source}: camera '{name}' has its target at its position")
+        raise CellConfigError(f"{source}: camera '{name}' has its target at its position")
     z = z / np.linalg.norm(z)
     down = -np.asarray(up, float)
     if np.linalg.norm(down - np.dot(down, z) * z) < 1e-9:
-        raise SimConfigError(f"{source}: camera '{name}' looks along its 'up' direction")
+        raise CellConfigError(f"{source}: camera '{name}' looks along its 'up' direction")
     return look_at(position, target, up)
 
 
@@ -461,3 +461,10 @@ def matrix_to_pose(T: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()])
+
+
+def tape_spec(cfg: CellConfig, plates: int | None = None) -> TapeSpec:
+    """The tape as a plate chain of ``plates`` equal plates (default: the simulated ones)."""
+    t = cfg.tape
+    n = plates or t.plates
+    return TapeSpec(np.full(n, t.length / n), t.width, np.asarray(t.base_position, float), t.world_from_base)
