@@ -7,11 +7,12 @@ from .capture import Capture, Truth, View, load_cameras, load_capture, save_came
 from .errors import CaptureError, EstimateError, TapecellError
 from .fit import estimate
 from .geometry import Camera
-from .result import Estimate
+from .result import Alternative, Estimate, Verdict
+from .scene import Box
 from .tape import TapeShape, TapeSpec, forward_kinematics
 
 __all__ = [
-    "Camera", "Capture", "CaptureError", "Estimate", "EstimateError", "TapeShape", "TapeSpec",
-    "TapecellError", "Truth", "View", "estimate", "forward_kinematics", "load_cameras", "load_capture",
+    "Alternative", "Box", "Camera", "Capture", "CaptureError", "Estimate", "EstimateError", "TapeShape", "TapeSpec",
+    "TapecellError", "Truth", "Verdict", "View", "estimate", "forward_kinematics", "load_cameras", "load_capture",
     "save_cameras", "save_capture",
 ]

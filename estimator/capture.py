@@ -16,6 +16,7 @@ import numpy as np
 from .errors import CaptureError
 from .geometry import Camera, check_finite, check_rotation
 from .io import atomic_dir, atomic_write_json, to_json
+from .scene import Box, parse_scene, scene_json
 from .segment import SegmentationParams, segment_tape
 from .tape import TapeSpec
 
@@ -65,13 +66,15 @@ class Truth:
 
 @dataclass(frozen=True, eq=False)
 class Capture:
-    """A set of simultaneous views of one tape, with its model dimensions."""
+    """A set of simultaneous views of one tape, with its model dimensions and the known
+    scene boxes (the part, the table) that may hide it and that it cannot pass through."""
 
     tape: TapeSpec
     views: list[View]
     truth: Truth | None = None
     path: Path | None = None
     segmentation: Mapping[str, Any] = field(default_factory=dict)
+    scene: tuple[Box, ...] = ()
 
     @property
     def cameras(self) -> list[Camera]:
@@ -193,8 +196,9 @@ def load_capture(path: str | Path, segmentation: Mapping[str, Any] | None = None
         if not visible.any():
             raise CaptureError(f"{root}: camera {camera.name} sees no tape")
         views.append(View(camera, mask, ignore, image))
+    scene = parse_scene(doc.get("scene"), str(cj))
     truth = load_truth(root / "truth.json") if (root / "truth.json").exists() else None
-    return Capture(tape, views, truth, root, dict(seg_doc))
+    return Capture(tape, views, truth, root, dict(seg_doc), scene)
 
 
 def load_truth(path: str | Path) -> Truth:
@@ -232,6 +236,8 @@ def capture_json(capture: Capture, rgb: bool = False) -> dict[str, Any]:
     doc: dict[str, Any] = {"format": CAPTURE_FORMAT, "units": "m", "tape": capture.tape.to_json(), "cameras": cams}
     if capture.segmentation:
         doc["segmentation"] = dict(capture.segmentation)
+    if capture.scene:
+        doc["scene"] = scene_json(capture.scene)
     return doc
 
 

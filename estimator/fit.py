@@ -45,6 +45,7 @@ from .geometry import Camera, _distort
 from .result import Estimate
 from .silhouette import CostEvaluator, ViewTarget, combine, make_target, project_quads
 from .tape import TapeSpec, forward_kinematics, joint_rotations
+from .verdict import judge
 
 Callback = Callable[[int, float, np.ndarray], None]
 
@@ -1094,5 +1095,6 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         if callback is not None:
             for k, (a, c) in enumerate(zip(trace, history), 1):
                 callback(k, c, a)
+    verdict, reason, tip_views = judge(view_costs)
     return Estimate(shape.nodes, angles, shape.nodes[-1].copy(), shape.frames[-1].copy(), combine(view_costs),
-                    view_costs, elapsed, method, history, evaluations)
+                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views)

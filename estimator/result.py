@@ -1,10 +1,42 @@
 """The estimator's result and its `tape-estimate/1` JSON form."""
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+
+class Verdict(str, enum.Enum):
+    """Whether a robot may act on an estimate (formats.md, `verdict`)."""
+
+    OK = "ok"
+    """The shape explains every view, two or more cameras see the free end, and no distinct
+    alternative comes close: a robot may act on it."""
+    AMBIGUOUS = "ambiguous"
+    """A distinct alternative (tip more than 10 mm away) explains the views nearly as well."""
+    HIDDEN = "hidden"
+    """Fewer than two cameras see the free end."""
+    POOR_FIT = "poor_fit"
+    """The silhouettes are not explained (bad calibration or segmentation, the wrong tape)."""
+
+
+@dataclass(frozen=True, eq=False)
+class Alternative:
+    """Another distinct shape that explains the views almost as well as the estimate.
+
+    cost: its silhouette cost (eq. 11); tip_position (3,) [m] and tip_rotation (3, 3) its
+    end frame; angles (n, 3) its plate chain [rad]."""
+
+    cost: float
+    tip_position: np.ndarray
+    tip_rotation: np.ndarray
+    angles: np.ndarray
+
+    def to_json(self) -> dict[str, Any]:
+        return {"cost": float(self.cost), "tip": {"position": np.asarray(self.tip_position).tolist(),
+                                                  "rotation": np.asarray(self.tip_rotation).tolist()}}
 
 
 @dataclass(frozen=True, eq=False)
@@ -20,6 +52,9 @@ class Estimate:
     method: "default" or "paper".
     history: cost after each optimiser iteration (for plots and logs).
     evaluations: number of cost evaluations.
+    verdict: whether a robot may act on it (:class:`Verdict`); verdict_reason: one line why.
+    tip_views: how many cameras see the free end.
+    alternatives: other distinct shapes within the verdict's cost margin, best first.
     """
 
     nodes: np.ndarray
@@ -32,6 +67,15 @@ class Estimate:
     method: str = "default"
     history: list[float] = field(default_factory=list)
     evaluations: int = 0
+    verdict: Verdict = Verdict.OK
+    verdict_reason: str = ""
+    tip_views: int = 0
+    alternatives: tuple[Alternative, ...] = ()
+
+    @property
+    def actionable(self) -> bool:
+        """A robot may act on this estimate (its verdict is "ok")."""
+        return self.verdict is Verdict.OK
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -42,6 +86,10 @@ class Estimate:
                     "rotation": np.asarray(self.tip_rotation).tolist()},
             "cost": float(self.cost),
             "view_costs": [float(c) for c in self.view_costs],
+            "verdict": Verdict(self.verdict).value,
+            "verdict_reason": self.verdict_reason,
+            "tip_views": int(self.tip_views),
+            "alternatives": [a.to_json() for a in self.alternatives],
             "time_s": float(self.time_s),
             "method": self.method,
             "evaluations": int(self.evaluations),

@@ -6,6 +6,8 @@ tape's tip followed the gripper through the lift. The result is a `tape-episode/
 """
 from __future__ import annotations
 
+import dataclasses
+
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -45,7 +47,7 @@ def with_cameras(capture: Capture, cameras_file: Path) -> Capture:
         if v.camera.name not in calibrated:
             raise TapecellError(f"{cameras_file}: no camera '{v.camera.name}' (has {', '.join(calibrated)})")
         views.append(View(calibrated[v.camera.name], v.mask, v.ignore, v.image))
-    return Capture(capture.tape, views, capture.truth, capture.path, capture.segmentation)
+    return dataclasses.replace(capture, views=views)
 
 
 def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
