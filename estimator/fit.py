@@ -1097,4 +1097,5 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
                 callback(k, c, a)
     verdict, reason, tip_views = judge(view_costs)
     return Estimate(shape.nodes, angles, shape.nodes[-1].copy(), shape.frames[-1].copy(), combine(view_costs),
-                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views)
+                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views,
+                    trace=tuple(trace) if method == "default" else ())

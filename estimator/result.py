@@ -54,6 +54,8 @@ class Estimate:
     evaluations: number of cost evaluations.
     verdict: whether a robot may act on it (:class:`Verdict`); verdict_reason: one line why.
     tip_views: how many cameras see the free end.
+    trace: the plate chain's angles (n, 3) after each optimiser iteration of the winner
+    (``history`` holds their eq.-11 costs); for plots and recordings.
     alternatives: other distinct shapes within the verdict's cost margin, best first.
     """
 
@@ -71,6 +73,7 @@ class Estimate:
     verdict_reason: str = ""
     tip_views: int = 0
     alternatives: tuple[Alternative, ...] = ()
+    trace: tuple[np.ndarray, ...] = ()
 
     @property
     def actionable(self) -> bool:
