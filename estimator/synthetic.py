@@ -17,6 +17,8 @@ import numpy as np
 
 from .capture import Capture, Truth, View
 from .geometry import Camera, look_at, rot_x, rot_y, rot_z
+from .occlusion import hidden
+from .scene import Box
 from .silhouette import project_quads, render
 from .tape import TapeShape, TapeSpec, forward_kinematics
 
@@ -34,6 +36,8 @@ class SyntheticOptions:
     miscalibration_px: typical reprojection error [px] of the written calibration.
     occluder: add a band occluding part of camera 0, with its ignore mask.
     distortion: render with radial lens distortion (and write it in the cameras).
+    part: the tape stands on a box (the part, written as the capture's scene) that hides
+    whatever goes behind it; the rig then faces the tape's front, as in the cell.
     """
 
     kind: str = "strip"
@@ -42,8 +46,11 @@ class SyntheticOptions:
     miscalibration_px: float = 0.0
     occluder: bool = False
     distortion: bool = False
+    part: bool = False
 
 
+PART_SIZE_M = (0.10, 0.10, 0.12)
+"""The synthetic part's edges along the tape's trunk, width and normal at its base [m]."""
 def _random_rotation(rng: np.random.Generator) -> np.ndarray:
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
@@ -56,9 +63,17 @@ def _random_rotation(rng: np.random.Generator) -> np.ndarray:
 
 
 def rig_cameras(rng: np.random.Generator, target: np.ndarray, count: int = 2,
-                distortion: bool = False) -> list[Camera]:
-    """The paper's rig looking at ``target`` [m] from a random direction."""
+                distortion: bool = False, facing: np.ndarray | None = None) -> list[Camera]:
+    """The paper's rig looking at ``target`` [m] from a random direction (or, given
+    ``facing`` (3,), from within about 35 degrees of that direction from the target)."""
     world_from_rig = _random_rotation(rng)
+    if facing is not None:
+        # Rig z (the viewing direction) against ``facing``, rolled at random.
+        z = -(np.asarray(facing, float) / np.linalg.norm(facing) + rng.normal(scale=0.35, size=3))
+        z /= np.linalg.norm(z)
+        x = np.cross(rng.normal(size=3), z)
+        x /= np.linalg.norm(x)
+        world_from_rig = np.column_stack([x, np.cross(z, x), z])
     # Rig frame: cameras on the -z side looking along +z, camera 1 along +x, camera 2 above.
     offsets = [np.array([-0.2, 0.0, -0.6]), np.array([0.2, 0.0, -0.6]), np.array([-0.2, -0.4, -0.6])]
     cams = []
@@ -86,9 +101,11 @@ def random_chain_angles(rng: np.random.Generator, n: int, scale: float = 0.35) -
     return a
 
 
-def strip_angles(rng: np.random.Generator, segments: int) -> np.ndarray:
+def strip_angles(rng: np.random.Generator, segments: int, droop: float = 0.0) -> np.ndarray:
     """(segments, 3) angles of a finely discretised continuous strip whose bending and
-    twist rates vary smoothly (quadratically) along its length."""
+    twist rates vary smoothly (quadratically) along its length; ``droop`` [rad] > 0 bends
+    it that much further away from its face (behind its base, as a tape hanging over the
+    back of the part does)."""
     s = (np.arange(segments) + 0.5) / segments
 
     def profile(total: float, spread: float) -> np.ndarray:
@@ -97,6 +114,8 @@ def strip_angles(rng: np.random.Generator, segments: int) -> np.ndarray:
         return rate / segments
 
     bend = rng.uniform(0.3, 2.2) * rng.choice([-1, 1])
+    if droop > 0:
+        bend = abs(bend) + droop
     return np.stack([profile(rng.normal(scale=0.6), 1.5),
                      profile(bend, 2.5),
                      profile(rng.normal(scale=0.12), 0.3)], axis=1)
@@ -159,15 +178,20 @@ def make_capture_with_angles(seed: int, options: SyntheticOptions = SyntheticOpt
     elif options.kind == "strip":
         segments = 60
         true_spec = TapeSpec(np.full(segments, length / segments), width, base_position, base_rotation)
-        angles = strip_angles(rng, segments)
+        angles = strip_angles(rng, segments, droop=rng.uniform(0.5, 1.5) if options.part else 0.0)
     else:
         raise ValueError(f"unknown synthetic tape kind {options.kind!r}")
     shape = forward_kinematics(true_spec, angles)
     center = shape.nodes.mean(axis=0)
-    cameras = rig_cameras(rng, center, options.cameras, options.distortion)
+    boxes: tuple[Box, ...] = ()
+    if options.part:
+        size = np.array(PART_SIZE_M)
+        boxes = (Box("part", base_position - base_rotation[:, 0] * size[0] / 2, size, base_rotation),)
+    cameras = rig_cameras(rng, center, options.cameras, options.distortion,
+                          facing=base_rotation[:, 2] if options.part else None)
     views = []
     for k, cam in enumerate(cameras):
-        mask = _render_shape(cam, shape)
+        mask = _render_shape(cam, shape, boxes)
         ignore = None
         if options.occluder and k == 0:
             ignore = _occluder(cam, rng, mask)
@@ -179,11 +203,31 @@ def make_capture_with_angles(seed: int, options: SyntheticOptions = SyntheticOpt
         views.append(View(_perturb(cam, rng, options.miscalibration_px), mask, ignore))
     s = np.concatenate([[0.0], np.cumsum(true_spec.segment_lengths)])
     truth = Truth(s, shape.nodes.copy(), shape.frames[-1].copy())
-    return Capture(spec, views, truth), angles
+    return Capture(spec, views, truth, scene=boxes), angles
 
 
-def _render_shape(camera: Camera, shape: TapeShape) -> np.ndarray:
-    return render(project_quads(camera, shape.quads()), (camera.height, camera.width)).astype(bool)
+def _render_shape(camera: Camera, shape: TapeShape, boxes: tuple[Box, ...] = ()) -> np.ndarray:
+    """The shape's silhouette; with ``boxes``, each plate cut into 4 x 4 cells, a cell drawn
+    only when no box hides its centre (a box itself is background)."""
+    quads = shape.quads()
+    if boxes:
+        quads = _subdivide(quads, 4)
+        quads = quads[~hidden(camera.center, quads.mean(axis=1), boxes)]
+    return render(project_quads(camera, quads), (camera.height, camera.width)).astype(bool)
+
+
+def _subdivide(quads: np.ndarray, k: int) -> np.ndarray:
+    """(m, 4, 3) quads (P_L[i-1], P_L[i], P_R[i], P_R[i-1]) -> (m k k, 4, 3) bilinear cells."""
+    a, b, c, d = (quads[:, i, None, None, :] for i in range(4))
+    t = np.linspace(0.0, 1.0, k + 1)
+
+    def at(u, v):   # u along the tape (a->b), v across (a->d)
+        u, v = u[None, :, None, None], v[None, None, :, None]
+        return (1 - u) * (1 - v) * a + u * (1 - v) * b + u * v * c + (1 - u) * v * d
+
+    g = at(t, t)                                        # (m, k+1, k+1, 3)
+    cells = np.stack([g[:, :-1, :-1], g[:, 1:, :-1], g[:, 1:, 1:], g[:, :-1, 1:]], axis=3)
+    return cells.reshape(-1, 4, 3)
 
 
 def sample_like(seed: int) -> Capture:
