@@ -33,12 +33,15 @@ def centerline_at(truth: Truth, s: np.ndarray) -> np.ndarray:
     return np.stack([np.interp(s, truth.s, truth.points[:, k]) for k in range(3)], axis=1)
 
 
-def errors(nodes: np.ndarray, tip_rotation: np.ndarray, truth: Truth) -> Errors:
-    """Errors of an estimated node polyline (n+1, 3) and tip frame against ``truth``."""
+def errors(nodes: np.ndarray, tip_rotation: np.ndarray, truth: Truth,
+           tip_position: np.ndarray | None = None) -> Errors:
+    """Errors of an estimated node polyline (n+1, 3) and tip frame against ``truth``; the
+    tip is ``tip_position`` (3,) when given (an estimator's finer end), else the last node."""
     nodes = np.asarray(nodes, float)
+    tip_position = nodes[-1] if tip_position is None else np.asarray(tip_position, float)
     s_nodes = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(nodes, axis=0), axis=1))])
     node_err = np.linalg.norm(nodes - centerline_at(truth, s_nodes), axis=1)
-    tip = float(np.linalg.norm(nodes[-1] - truth.points[-1]))
+    tip = float(np.linalg.norm(tip_position - truth.points[-1]))
     c = abs(float(np.dot(tip_rotation[:, 2], truth.tip_rotation[:, 2])))
     normal = float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
     return Errors(tip, float(node_err.max()), node_err, normal)
