@@ -6,6 +6,12 @@ number of pixels where model and observed masks differ (exclusive-OR, eq. 5-6) d
 the observed object's area (eq. 7); views combine as the root of the sum of squares
 (eq. 11). Pixels marked in a view's ``ignore`` mask count in neither term.
 
+With known scene boxes (the part, the table), a model plate behind a box from a camera is
+not drawn in that view: the opaque box, not tape, is what the camera sees there, so that
+pixel is no mismatch where the observed mask shows no tape. Plates are cut into
+``OCCLUSION_CELLS`` x ``OCCLUSION_CELLS`` cells for this test, each hidden or not by its
+centre.
+
 Rendering works in a region of interest (ROI) of each image. Model area that falls
 outside the ROI is charged analytically (quad area minus its part inside the ROI), so a
 cropped cost equals the full-image cost as long as the observed tape lies inside the ROI.
@@ -20,7 +26,13 @@ import numpy as np
 
 from .capture import View
 from .geometry import Camera
+from .occlusion import hidden
+from .scene import Box
 from .tape import TapeShape
+
+OCCLUSION_CELLS = 3
+"""Cells along and across a plate for the occlusion test (the cut along a box's edge is
+then within a third of a plate of the truth, and only where a plate straddles it)."""
 
 SHIFT = 4
 """Fixed-point bits of polygon vertices: vertices land on a 1/16 px grid."""
@@ -139,21 +151,43 @@ def _signed_area(p: np.ndarray) -> float:
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
 
-class CostEvaluator:
-    """Evaluates eq. 7 per view and eq. 11 overall for plate quads, reusing buffers."""
+def subdivide(quads: np.ndarray, k: int) -> np.ndarray:
+    """(..., 4, 3) quads (P_L[i-1], P_L[i], P_R[i], P_R[i-1]) -> (..., k k, 4, 3) bilinear
+    cells, k along the tape and k across."""
+    a, b, c, d = (quads[..., i, None, None, :] for i in range(4))
+    t = np.linspace(0.0, 1.0, k + 1)
+    u, v = t[:, None, None], t[None, :, None]
+    g = (1 - u) * (1 - v) * a + u * (1 - v) * b + u * v * c + (1 - u) * v * d   # (..., k+1, k+1, 3)
+    cells = np.stack([g[..., :-1, :-1, :], g[..., 1:, :-1, :], g[..., 1:, 1:, :], g[..., :-1, 1:, :]], axis=-2)
+    return cells.reshape(*quads.shape[:-2], k * k, 4, 3)
 
-    def __init__(self, targets: Sequence[ViewTarget]):
+
+def visible_quads(camera: Camera, quads_world: np.ndarray, boxes: Sequence[Box]) -> np.ndarray:
+    """The cells of (m, 4, 3) world quads that no box hides from ``camera``: (c, 4, 3)."""
+    cells = subdivide(quads_world, OCCLUSION_CELLS).reshape(-1, 4, 3)
+    return cells[~hidden(camera.center, cells.mean(axis=1), boxes)]
+
+
+class CostEvaluator:
+    """Evaluates eq. 7 per view and eq. 11 overall for plate quads, reusing buffers;
+    with scene ``boxes``, plates a box hides from a camera are not drawn in its view."""
+
+    def __init__(self, targets: Sequence[ViewTarget], boxes: Sequence[Box] = ()):
         self.targets = list(targets)
+        self.boxes = tuple(boxes)
         self._model = [np.zeros(t.shape, np.uint8) for t in self.targets]
         self._diff = [np.zeros(t.shape, np.uint8) for t in self.targets]
         self.evaluations = 0
+
+    def _seen(self, t: ViewTarget, quads_world: np.ndarray) -> np.ndarray:
+        return visible_quads(t.camera, quads_world, self.boxes) if self.boxes else quads_world
 
     def view_costs(self, quads_world: np.ndarray) -> np.ndarray:
         """(m, 4, 3) world quads -> (views,) normalised XOR costs s/r_d (eq. 5-7)."""
         self.evaluations += 1
         out = np.empty(len(self.targets))
         for k, t in enumerate(self.targets):
-            px = project_quads(t.camera, quads_world)
+            px = project_quads(t.camera, self._seen(t, quads_world))
             out[k] = self._view_xor(k, px) / t.area
         return out
 
@@ -174,6 +208,8 @@ class CostEvaluator:
         """(B, m, 4, 3) world quads of B chains -> (B,) eq.-11 costs (each view projects
         all chains at once)."""
         B, m = quads_world.shape[:2]
+        if self.boxes:
+            return np.array([self.cost(q) for q in quads_world]) if B else np.zeros(0)
         self.evaluations += B
         out = np.zeros((B, len(self.targets)))
         for k, t in enumerate(self.targets if B else ()):
@@ -184,7 +220,8 @@ class CostEvaluator:
 
     def model_masks(self, quads_world: np.ndarray) -> list[np.ndarray]:
         """The model silhouettes (ROI-sized uint8 images) for the given quads."""
-        return [render(project_quads(t.camera, quads_world), t.shape, t.x0, t.y0) for t in self.targets]
+        return [render(project_quads(t.camera, self._seen(t, quads_world)), t.shape, t.x0, t.y0)
+                for t in self.targets]
 
 
 def combine(view_costs: np.ndarray) -> float:
@@ -197,7 +234,8 @@ def shape_quads(shape: TapeShape) -> np.ndarray:
     return shape.quads()
 
 
-def render_view(camera: Camera, shape: TapeShape) -> np.ndarray:
-    """Full-image bool silhouette of ``shape`` in ``camera``."""
-    px = project_quads(camera, shape.quads())
+def render_view(camera: Camera, shape: TapeShape, boxes: Sequence[Box] = ()) -> np.ndarray:
+    """Full-image bool silhouette of ``shape`` in ``camera`` (behind ``boxes`` hidden)."""
+    quads = shape.quads()
+    px = project_quads(camera, visible_quads(camera, quads, boxes) if boxes else quads)
     return render(px, (camera.height, camera.width)).astype(bool)

@@ -19,7 +19,7 @@ from .capture import Capture, Truth, View
 from .geometry import Camera, look_at, rot_x, rot_y, rot_z
 from .occlusion import hidden
 from .scene import Box
-from .silhouette import project_quads, render
+from .silhouette import project_quads, render, subdivide
 from .tape import TapeShape, TapeSpec, forward_kinematics
 
 FX_PX = 1371.0
@@ -211,23 +211,10 @@ def _render_shape(camera: Camera, shape: TapeShape, boxes: tuple[Box, ...] = ())
     only when no box hides its centre (a box itself is background)."""
     quads = shape.quads()
     if boxes:
-        quads = _subdivide(quads, 4)
+        quads = subdivide(quads, 4).reshape(-1, 4, 3)
         quads = quads[~hidden(camera.center, quads.mean(axis=1), boxes)]
     return render(project_quads(camera, quads), (camera.height, camera.width)).astype(bool)
 
-
-def _subdivide(quads: np.ndarray, k: int) -> np.ndarray:
-    """(m, 4, 3) quads (P_L[i-1], P_L[i], P_R[i], P_R[i-1]) -> (m k k, 4, 3) bilinear cells."""
-    a, b, c, d = (quads[:, i, None, None, :] for i in range(4))
-    t = np.linspace(0.0, 1.0, k + 1)
-
-    def at(u, v):   # u along the tape (a->b), v across (a->d)
-        u, v = u[None, :, None, None], v[None, None, :, None]
-        return (1 - u) * (1 - v) * a + u * (1 - v) * b + u * v * c + (1 - u) * v * d
-
-    g = at(t, t)                                        # (m, k+1, k+1, 3)
-    cells = np.stack([g[:, :-1, :-1], g[:, 1:, :-1], g[:, 1:, 1:], g[:, :-1, 1:]], axis=3)
-    return cells.reshape(-1, 4, 3)
 
 
 def sample_like(seed: int) -> Capture:
