@@ -45,7 +45,7 @@ from .geometry import Camera, _distort
 from .result import Estimate
 from .silhouette import CostEvaluator, ViewTarget, combine, make_target, project_quads
 from .tape import TapeSpec, forward_kinematics, joint_rotations
-from .verdict import judge
+from .verdict import assess
 
 Callback = Callable[[int, float, np.ndarray], None]
 
@@ -1053,6 +1053,14 @@ def _costed(capture: Capture, angles: np.ndarray):
     return shape, CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views]).view_costs(quads)
 
 
+def _judge(capture: Capture, view_costs: np.ndarray, shape, cost: float):
+    models = CostEvaluator([make_target(v, roi=_cost_roi(v, shape.quads())) for v in capture.views],
+                           capture.scene).model_masks(shape.quads())
+    j = assess(capture.views, capture.scene, capture.tape.width, view_costs, models, shape.nodes, shape.nodes[-1],
+               shape.frames[-1], cost, [])
+    return j.verdict, j.reason, j.tip_views
+
+
 def estimate(capture: Capture, method: str = "default", callback: Callback | None = None) -> Estimate:
     """Fit the plate chain to ``capture``'s silhouettes.
 
@@ -1095,7 +1103,7 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         if callback is not None:
             for k, (a, c) in enumerate(zip(trace, history), 1):
                 callback(k, c, a)
-    verdict, reason, tip_views = judge(view_costs)
+    verdict, reason, tip_views = _judge(capture, view_costs, shape, combine(view_costs))
     return Estimate(shape.nodes, angles, shape.nodes[-1].copy(), shape.frames[-1].copy(), combine(view_costs),
                     view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views,
                     trace=tuple(trace) if method == "default" else ())

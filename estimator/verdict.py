@@ -1,21 +1,148 @@
 """The estimator's verdict: may a robot act on this estimate? (formats.md, `verdict`).
 
-Judged per view, so a threshold means the same with 2 or 3 cameras.
+Three questions, each judged so that a threshold means the same with 2 or 3 cameras:
+
+- Does the shape explain every view? Per view, the silhouette mismatch (the XOR of eq.
+  5-6, in pixels) divided by the outline's length [px] (the shorter of the observed and
+  the model's: a mask of noise has a huge outline, the model's stays a tape's) is the
+  mean distance between the model's and the observed boundary [px]: about 0.5-1.5 px on
+  good fits whatever the view's size or thickness, where the area-normalised eq. 7 cost of
+  an edge-on view is several times that of a face-on one. Above ``POOR_OFFSET_PX`` in any
+  view: ``poor_fit``.
+- Do two cameras see the free end? The estimate's last ``TIP_SPAN_M`` of centre line and
+  its tip corners are projected into each view; a view sees the free end when at least
+  ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore mask and
+  in front of every scene box. Fewer than two such views: ``hidden``.
+- Does a distinct shape explain the views nearly as well? An alternative whose tip is more
+  than ``DISTINCT_TIP_M`` from the estimate's, refined like the winner, whose silhouette
+  cost (eq. 11) is at most ``AMBIGUOUS_RATIO`` times the winner's (plus
+  ``AMBIGUOUS_ABS``): ``ambiguous``.
+
+The thresholds and the rates of wrong "ok" and needless refusals measured with them are
+in the README (``scripts/bench_verdict.py``).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
 import numpy as np
 
+from .capture import View
+from .occlusion import hidden
 from .result import Verdict
+from .scene import Box
 
-POOR_VIEW_COST = 0.35
-"""A view whose silhouette cost (eq. 7) is above this is not explained by the fit."""
+POOR_OFFSET_PX = 4.0
+"""Mean boundary distance [px] in a view above which the fit does not explain it."""
+TIP_SPAN_M = 0.005
+"""Length of the free end [m] whose visibility decides whether a camera sees it."""
+TIP_SEEN_FRACTION = 0.5
+"""Fraction of the free end's points a camera must see to count as seeing it."""
+DISTINCT_TIP_M = 0.010
+"""Tips further apart than this [m] make two shapes distinct hypotheses (formats.md)."""
+AMBIGUOUS_RATIO = 1.3
+AMBIGUOUS_ABS = 0.02
+"""A distinct alternative with eq.-11 cost <= AMBIGUOUS_RATIO * best + AMBIGUOUS_ABS
+explains the views nearly as well as the estimate."""
 
 
-def judge(view_costs: np.ndarray) -> tuple[Verdict, str, int]:
-    """(verdict, reason, tip_views) from the per-view costs alone."""
-    view_costs = np.asarray(view_costs, float)
-    worst = int(np.argmax(view_costs))
-    if view_costs[worst] > POOR_VIEW_COST:
-        return Verdict.POOR_FIT, f"view {worst} cost {view_costs[worst]:.3f} > {POOR_VIEW_COST}", len(view_costs)
-    return Verdict.OK, "", len(view_costs)
+@dataclass(frozen=True)
+class Judgement:
+    """verdict; reason: one line why (empty when "ok"); tip_views: cameras seeing the free
+    end; offsets_px: (views,) mean boundary distance per view [px]."""
+
+    verdict: Verdict
+    reason: str
+    tip_views: int
+    offsets_px: np.ndarray
+
+
+def _outline(m: np.ndarray) -> tuple[float, float]:
+    """(area, outline length) [px] of a uint8 0/1 mask: its pixels and its boundary pixels."""
+    x, y, w, h = cv2.boundingRect(m)
+    roi = np.pad(m[y:y + h, x:x + w], 1)
+    return float(cv2.countNonZero(roi)), float(cv2.countNonZero(roi - cv2.erode(roi, np.ones((3, 3), np.uint8))))
+
+
+def observed_size(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray]:
+    """(areas, outline lengths), each (views,) [px]: the observed silhouette's counted
+    pixels (eq. 7's r_d) and its boundary pixels, ignored pixels excluded; at least 1."""
+    areas, lengths = np.ones(len(views)), np.ones(len(views))
+    for k, v in enumerate(views):
+        m = v.mask.astype(np.uint8)
+        if v.ignore is not None:
+            m[v.ignore] = 0
+        a, length = _outline(m)
+        areas[k], lengths[k] = max(1.0, a), max(1.0, length)
+    return areas, lengths
+
+
+def model_outline_lengths(model_masks: Sequence[np.ndarray]) -> np.ndarray:
+    """(views,) outline length [px] of each view's model silhouette (uint8 0/1 images)."""
+    return np.array([max(1.0, _outline(m)[1]) for m in model_masks])
+
+
+def boundary_offsets(view_costs: np.ndarray, areas: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """(views,) mean boundary distance [px]: eq.-7 cost x observed area / outline length."""
+    return np.asarray(view_costs, float) * np.asarray(areas, float) / np.asarray(lengths, float)
+
+
+def end_points(nodes: np.ndarray, tip_position: np.ndarray, tip_rotation: np.ndarray, width: float) -> np.ndarray:
+    """(k, 3) world points of the free end: the centre line's last TIP_SPAN_M and the tip's
+    two corners."""
+    nodes = np.asarray(nodes, float)
+    back = tip_position - TIP_SPAN_M * tip_rotation[:, 0]
+    t = np.linspace(0.0, 1.0, 6)[:, None]
+    line = back + t * (tip_position - back)
+    half = 0.5 * width * tip_rotation[:, 1]
+    return np.vstack([line, tip_position + half, tip_position - half])
+
+
+def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]) -> list[bool]:
+    """Per view: does it see at least TIP_SEEN_FRACTION of ``points`` (k, 3)?"""
+    out = []
+    for v in views:
+        cam = v.camera
+        uv = cam.project(points)
+        ok = np.all(np.isfinite(uv), axis=1) & (cam.to_camera(points)[:, 2] > 0)
+        u = np.where(ok, np.rint(uv[:, 0]), -1).astype(int)
+        w = np.where(ok, np.rint(uv[:, 1]), -1).astype(int)
+        ok &= (u >= 0) & (u < cam.width) & (w >= 0) & (w < cam.height)
+        if v.ignore is not None:
+            ok[ok] &= ~v.ignore[w[ok], u[ok]]
+        if boxes:
+            ok &= ~hidden(cam.center, points, boxes)
+        out.append(bool(ok.mean() >= TIP_SEEN_FRACTION))
+    return out
+
+
+def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs: np.ndarray,
+           model_masks: Sequence[np.ndarray], nodes: np.ndarray, tip_position: np.ndarray,
+           tip_rotation: np.ndarray, best_cost: float, alternatives: Sequence[tuple[float, np.ndarray]]) -> Judgement:
+    """The whole judgement of an estimate (see the module's text); ``model_masks``: the
+    estimate's silhouette in each view (uint8 0/1 images of any crop holding it)."""
+    areas, lengths = observed_size(views)
+    offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, model_outline_lengths(model_masks)))
+    seen = seeing_views(views, end_points(nodes, tip_position, tip_rotation, width), boxes)
+    verdict, reason = judge(offsets, sum(seen), best_cost, tip_position, alternatives)
+    return Judgement(verdict, reason, sum(seen), offsets)
+
+
+def judge(offsets_px: np.ndarray, tip_views: int, best_cost: float, best_tip: np.ndarray,
+          alternatives: Sequence[tuple[float, np.ndarray]]) -> tuple[Verdict, str]:
+    """The verdict and its reason from per-view boundary distances [px], the number of
+    cameras that see the free end, and the alternatives (eq.-11 cost, tip (3,)) found."""
+    worst = int(np.argmax(offsets_px))
+    if offsets_px[worst] > POOR_OFFSET_PX:
+        return Verdict.POOR_FIT, (f"view {worst} is not explained: mean boundary distance "
+                                  f"{offsets_px[worst]:.1f} px > {POOR_OFFSET_PX:g} px")
+    if tip_views < 2:
+        return Verdict.HIDDEN, f"{tip_views} camera(s) see the free end, 2 needed"
+    for cost, tip in alternatives:
+        d = float(np.linalg.norm(np.asarray(tip) - best_tip))
+        if d > DISTINCT_TIP_M and cost <= AMBIGUOUS_RATIO * best_cost + AMBIGUOUS_ABS:
+            return Verdict.AMBIGUOUS, (f"a shape with its tip {1e3 * d:.0f} mm away explains the views "
+                                       f"nearly as well (cost {cost:.3f} vs {best_cost:.3f})")
+    return Verdict.OK, ""
