@@ -110,6 +110,9 @@ def _cell(h, w, x0, y0, u, v):
     and (ox, oy), how far the point lies outside the ROI [px]."""
     x = u - x0
     y = v - y0
+    if not (math.isfinite(x) and math.isfinite(y)):
+        # A point behind the camera or at infinity: far outside, and never an index.
+        return 0, 0, min(1, w - 1), min(1, h - 1), np.float32(0.0), np.float32(0.0), 1e6, 1e6
     xc = min(max(x, 0.0), w - 1.0)
     yc = min(max(y, 0.0), h - 1.0)
     ox = x - xc

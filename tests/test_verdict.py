@@ -1,0 +1,93 @@
+"""The estimator's verdict, each on a capture built for it (estimator/verdict.py)."""
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from tapecell.estimator import Verdict, View, estimate
+from tapecell.estimator.metrics import errors
+from tapecell.estimator.occlusion import hidden, penetration
+from tapecell.estimator.scene import Box
+from tapecell.estimator.synthetic import SyntheticOptions, make_capture
+from tapecell.estimator.verdict import POOR_OFFSET_PX, boundary_offsets, judge
+
+
+def _tip_mm(capture, est) -> float:
+    return 1e3 * errors(est.nodes, est.tip_rotation, capture.truth, est.tip_position).tip_m
+
+
+@pytest.mark.parametrize("seed", [71014, 71017, 71018])
+def test_tip_behind_the_part_is_never_ok(seed):
+    """The true tip is hidden behind the part from one of two cameras: the estimate must
+    not be "ok" (nothing may act on it), whatever shape it found."""
+    capture = make_capture(seed, SyntheticOptions(part=True, cameras=2))
+    assert sum(not hidden(v.camera.center, capture.truth.points[-1:], capture.scene)[0] for v in capture.views) == 1
+    est = estimate(capture)
+    assert est.verdict is not Verdict.OK, f"ok with tip error {_tip_mm(capture, est):.1f} mm"
+    assert est.tip_views <= 2
+
+
+@pytest.mark.parametrize("seed", [4100, 4101, 4102])
+def test_clean_captures_are_ok_and_accurate(seed):
+    capture = make_capture(seed, SyntheticOptions(cameras=2 + seed % 2))
+    est = estimate(capture)
+    assert est.verdict is Verdict.OK, est.verdict_reason
+    assert est.tip_views == len(capture.views)
+    assert _tip_mm(capture, est) < 3.0
+
+
+def test_white_mask_is_a_poor_fit():
+    capture = make_capture(4200, SyntheticOptions(cameras=2))
+    v = capture.views[1]
+    white = dataclasses.replace(capture, views=[capture.views[0], View(v.camera, np.ones_like(v.mask))])
+    est = estimate(white)
+    assert est.verdict is Verdict.POOR_FIT
+    assert "view 1" in est.verdict_reason
+
+
+def test_miscalibrated_camera_is_accurate_or_poor_fit():
+    """A camera turned by 0.5 deg (12 px at the tape): the fit stays within 5 mm, or says
+    it does not explain the views; never a confident wrong answer."""
+    capture = make_capture(4300, SyntheticOptions(cameras=2))
+    cam = capture.views[0].camera
+    dR = cv2.Rodrigues(np.array([0.0, 1.0, 0.0]) * np.radians(0.5))[0]
+    views = [View(cam.with_pose(dR @ cam.R, cam.t), capture.views[0].mask)] + list(capture.views[1:])
+    est = estimate(dataclasses.replace(capture, views=views))
+    assert est.verdict is Verdict.POOR_FIT or _tip_mm(capture, est) < 5.0
+
+
+def test_judge_thresholds_per_view_not_per_camera_count():
+    """The same per-view offsets give the same verdict with 2 and 3 cameras, and one view
+    above the threshold is a poor fit however good the others are."""
+    tip = np.zeros(3)
+    assert judge(np.array([1.0, 1.2]), 2, 0.1, tip, [])[0] is Verdict.OK
+    assert judge(np.array([1.0, 1.2, 1.1]), 3, 0.17, tip, [])[0] is Verdict.OK
+    assert judge(np.array([0.5, 0.5, POOR_OFFSET_PX + 0.1]), 3, 0.1, tip, [])[0] is Verdict.POOR_FIT
+    assert judge(np.array([1.0, 1.0, 1.0]), 1, 0.1, tip, [])[0] is Verdict.HIDDEN
+    near, far = (0.105, np.array([0.005, 0, 0])), (0.105, np.array([0.03, 0, 0]))
+    assert judge(np.array([1.0, 1.0]), 2, 0.1, tip, [near])[0] is Verdict.OK        # same hypothesis
+    assert judge(np.array([1.0, 1.0]), 2, 0.1, tip, [far])[0] is Verdict.AMBIGUOUS
+    assert judge(np.array([1.0, 1.0]), 2, 0.1, tip, [(0.5, far[1])])[0] is Verdict.OK  # clearly worse
+
+
+def test_boundary_offset_is_xor_over_outline():
+    assert np.allclose(boundary_offsets(np.array([0.1]), np.array([1000.0]), np.array([50.0])), [2.0])
+
+
+def test_occlusion_geometry():
+    box = Box("part", np.array([0.0, 0.0, 0.05]), np.array([0.1, 0.1, 0.1]), np.eye(3))
+    eye = np.array([1.0, 0.0, 0.15])
+    pts = np.array([[-0.1, 0.0, 0.05], [0.1, 0.0, 0.05], [0.0, 0.0, 0.1], [-0.1, 0.0, 0.2], [0.0, 0.0, 0.05]])
+    # Behind the box; in front of it; on its top face (seen from above); above and behind
+    # it; inside it.
+    assert hidden(eye, pts, [box]).tolist() == [True, False, False, False, True]
+    depth, grad = penetration(np.array([[0.0, 0.04, 0.05], [0.0, 0.2, 0.0]]), [box])
+    assert depth[1] == 0.0 and np.isclose(depth[0], 0.05 - 0.04 - 0.001)
+    # The gradient is the finite difference of the depth.
+    p = np.array([[0.01, 0.02, 0.03]])
+    d0, g = penetration(p, [box])
+    fd = [(penetration(p + 1e-7 * e, [box])[0][0] - d0[0]) / 1e-7 for e in np.eye(3)]
+    assert np.allclose(g[0], fd, atol=1e-5)
