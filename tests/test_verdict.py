@@ -87,7 +87,7 @@ def test_occlusion_geometry():
     depth, grad = penetration(np.array([[0.0, 0.04, 0.05], [0.0, 0.2, 0.0]]), [box])
     assert depth[1] == 0.0 and np.isclose(depth[0], 0.05 - 0.04 - 0.001)
     # The gradient is the finite difference of the depth.
-    p = np.array([[0.01, 0.02, 0.03]])
+    p = np.array([[0.01, 0.02, 0.06]])
     d0, g = penetration(p, [box])
     fd = [(penetration(p + 1e-7 * e, [box])[0][0] - d0[0]) / 1e-7 for e in np.eye(3)]
     assert np.allclose(g[0], fd, atol=1e-5)
