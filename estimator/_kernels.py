@@ -22,6 +22,7 @@ import weakref
 import numpy as np
 from numba import njit
 
+from .occlusion import hidden
 from .geometry import Camera
 
 _camera_cache: "weakref.WeakKeyDictionary[Camera, np.ndarray]" = weakref.WeakKeyDictionary()
@@ -266,11 +267,12 @@ def chain_points(angles, base_position, base_rotation, segment_lengths, width, p
 
 @njit(cache=True, fastmath=False)
 def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns, edge, weight, segments,
-                   delta_out, delta_in):
+                   delta_out, delta_in, hidden):
     """One view's part of fit._residuals (no view shifts): coverage residuals of the
     observed outline (P) then the sample points' (ns) residuals.
 
-    pts: (B, ns + 3m, 3) sample points then corners; J: their Jacobian (B, ., 3, N).
+    pts: (B, ns + 3m, 3) sample points then corners; J: their Jacobian (B, ., 3, N);
+    hidden: (B, ns) sample points a scene box hides from this camera (cost nothing).
     Returns (robust cost (B,), weighted residuals (B, P + ns), Jacobian (B, P + ns, N)).
     """
     B = pts.shape[0]
@@ -352,7 +354,7 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
             centre = not edge[p]
             r = max(sdf, 0.0) if centre else sdf
             rho, w = _robust(r, edge[p] and sdf < 0, delta_out, delta_in)
-            if ignored:
+            if ignored or hidden[b, p]:
                 rho = 0.0
                 w = 0.0
             rho_sum += rho * weight[p] ** 2
@@ -393,11 +395,13 @@ def _sample_sdf(sdf_img, flag_img, x0, y0, has_ignore, u, v):
 
 
 @njit(cache=True, fastmath=False)
-def edge_cost(pts, n_edge, cam, sdf_img, flag_img, x0, y0, has_ignore, delta_out, delta_in):
+def edge_cost(pts, n_edge, cam, sdf_img, flag_img, x0, y0, has_ignore, delta_out, delta_in, hidden, hidden_cost):
     """Beam score of one view: (C, s, 3) candidates' sample points, the first ``n_edge``
     on plate edges (signed distance, robust), the rest on the centre line (only outside
     counts) -> (C,) summed robust losses (ignored pixels cost nothing). sdf_img, flag_img:
-    the field's channels 0 and 3 as (h, w) float32 planes."""
+    the field's channels 0 and 3 as (h, w) float32 planes; hidden: (C, s) points a scene
+    box hides from this camera (cost ``hidden_cost`` each: a partial chain is not better
+    for hiding behind the part)."""
     C, s = pts.shape[0], pts.shape[1]
     out = np.empty(C)
     for c in range(C):
@@ -408,7 +412,9 @@ def edge_cost(pts, n_edge, cam, sdf_img, flag_img, x0, y0, has_ignore, delta_out
             is_edge = p < n_edge
             r = sdf if is_edge else max(sdf, 0.0)
             rho, w = _robust(r, is_edge and sdf < 0, delta_out, delta_in)
-            if not ignored:
+            if hidden[c, p]:
+                total += hidden_cost
+            elif not ignored:
                 total += rho
         out[c] = total
     return out
@@ -616,21 +622,37 @@ def points(chain, angles: np.ndarray, jacobian: bool):
     return pts, (J if jacobian else None)
 
 
+HIDDEN_BEAM_COST = 2.0
+"""Beam-score loss of a sample point a scene box hides (a visible point on the boundary
+costs 0, one 2 px off 2): hiding is not free in the global search, else it fills the beam
+with chains that dive behind the part."""
+
+
+def hidden_points(field, pts: np.ndarray) -> np.ndarray:
+    """(B, s) which of the sample points (B, s, 3) the view's scene boxes hide from it."""
+    if not field.boxes:
+        return np.zeros(pts.shape[:2], np.bool_)
+    return hidden(field.camera.center, pts.reshape(-1, 3), field.boxes).reshape(pts.shape[:2])
+
+
 def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: float, delta_in: float):
     """Compiled per-view part of ``fit._residuals`` without view shifts: (residual blocks
-    [(B, P_k + s)] per view, Jacobian blocks [(B, P_k + s, 3n)] or [], robust cost (B,))."""
+    [(B, P_k + s)] per view, Jacobian blocks [(B, P_k + s, 3n)] or [], robust cost (B,),
+    the chains' points (B, s + 3m, 3) and their Jacobian (B, s + 3m, 3, 3n) or None)."""
     pair, pair_w, edge, weight, segments, pos, rot, lengths, width = _chain_arrays(chain)
     pts, J = chain_points(np.ascontiguousarray(angles, float), pos, rot, lengths, width, pair, pair_w, jacobian)
     cost = np.zeros(len(pts))
     rs, js = [], []
+    ns = chain.samples
     for f in fields:
         c, r, j = view_residuals(pts, J, jacobian, camera_params(f.camera), f.field, f.x0, f.y0, f.has_ignore,
-                                 f.outline, chain.samples, edge, weight, segments, delta_out, delta_in)
+                                 f.outline, ns, edge, weight, segments, delta_out, delta_in,
+                                 hidden_points(f, pts[:, :ns]))
         cost += c
         rs.append(r)
         if jacobian:
             js.append(j)
-    return rs, js, cost
+    return rs, js, cost, pts, (J if jacobian else None)
 
 
 _warm = False
@@ -657,8 +679,9 @@ def warm() -> float:
     for jac in (False, True):
         pts, J = chain_points(angles, *args, jac)
         view_residuals(pts, J, jac, cam, field, 0, 0, True, np.zeros((2, 2)), 1, np.ones(1, np.bool_),
-                       np.ones(1), segments, 3.0, 1.5)
-    edge_cost(pts, 1, cam, field[:, :, 0].copy(), field[:, :, 3].copy(), 0, 0, True, 3.0, 1.5)
+                       np.ones(1), segments, 3.0, 1.5, np.zeros((1, 1), np.bool_))
+    edge_cost(pts, 1, cam, field[:, :, 0].copy(), field[:, :, 3].copy(), 0, 0, True, 3.0, 1.5,
+              np.zeros(pts.shape[:2], np.bool_), 0.0)
     outline_cost(pts, segments, cam, np.zeros((2, 2)), 3.0)
     lookup(field, 0, 0, True, np.zeros(2), np.zeros(2))
     t = np.array([0.5])
@@ -676,7 +699,7 @@ def beam_edge_cost(field, pts: np.ndarray, edge_count: int, delta_out: float, de
     lead = pts.shape[:-2]
     flat = np.ascontiguousarray(pts, float).reshape(-1, pts.shape[-2], 3)
     out = edge_cost(flat, edge_count, camera_params(field.camera), *field.planes, field.x0, field.y0,
-                    field.has_ignore, delta_out, delta_in)
+                    field.has_ignore, delta_out, delta_in, hidden_points(field, flat), HIDDEN_BEAM_COST)
     return out.reshape(lead)
 
 

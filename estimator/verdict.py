@@ -130,6 +130,11 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     return Judgement(verdict, reason, sum(seen), offsets)
 
 
+def is_close_alternative(cost: float, best_cost: float) -> bool:
+    """Does a hypothesis of eq.-11 ``cost`` explain the views nearly as well as the best?"""
+    return cost <= AMBIGUOUS_RATIO * best_cost + AMBIGUOUS_ABS
+
+
 def judge(offsets_px: np.ndarray, tip_views: int, best_cost: float, best_tip: np.ndarray,
           alternatives: Sequence[tuple[float, np.ndarray]]) -> tuple[Verdict, str]:
     """The verdict and its reason from per-view boundary distances [px], the number of
@@ -142,7 +147,7 @@ def judge(offsets_px: np.ndarray, tip_views: int, best_cost: float, best_tip: np
         return Verdict.HIDDEN, f"{tip_views} camera(s) see the free end, 2 needed"
     for cost, tip in alternatives:
         d = float(np.linalg.norm(np.asarray(tip) - best_tip))
-        if d > DISTINCT_TIP_M and cost <= AMBIGUOUS_RATIO * best_cost + AMBIGUOUS_ABS:
+        if d > DISTINCT_TIP_M and is_close_alternative(cost, best_cost):
             return Verdict.AMBIGUOUS, (f"a shape with its tip {1e3 * d:.0f} mm away explains the views "
                                        f"nearly as well (cost {cost:.3f} vs {best_cost:.3f})")
     return Verdict.OK, ""
