@@ -957,6 +957,7 @@ def _strip_stage(chain: _Chain, fields: list[_Field], angles: np.ndarray):
         fun = _corner_fit(chain.corners, goal, w, extra)
         return _gauss_newton(fun, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
 
+    output.tip = (fine.nodes[-1].copy(), fine.frames[-1].copy())   # the strip's end frame
     return output
 
 
@@ -1071,8 +1072,10 @@ def fit_default(capture: Capture, callback: Callback | None = None):
         if c2 < WIDE_GAIN * cost:
             angles, trace, cost = a2, trace + t2, c2
     fallback = None
+    tip = None
     if STRIP:
         output = _strip_stage(chain, fields, angles)
+        tip = output.tip
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
         # above the guard: the chain without the tip-frame pull, then the plate fit.
@@ -1080,7 +1083,7 @@ def fit_default(capture: Capture, callback: Callback | None = None):
         fallback = (cost, alternatives + [lambda: plate])
         angles = output(STRIP_FRAME_WEIGHT)
         trace = trace + [angles]
-    return angles, trace, evaluator.evaluations, fallback, _hypotheses(chain, pool, angles)
+    return angles, trace, evaluator.evaluations, fallback, _hypotheses(chain, pool, angles), tip
 
 
 def _hypotheses(chain: _Chain, pool: list, winner: np.ndarray) -> list:
@@ -1144,7 +1147,8 @@ def _costed(capture: Capture, angles: np.ndarray):
                                 capture.scene).view_costs(quads)
 
 
-def _judge(capture: Capture, view_costs: np.ndarray, shape, best_cost: float, hypotheses: list):
+def _judge(capture: Capture, view_costs: np.ndarray, shape, tip_position: np.ndarray, tip_rotation: np.ndarray,
+           best_cost: float, hypotheses: list):
     """(verdict, reason, tip_views, alternatives) of the output ``shape``; ``best_cost``:
     the plate fit's eq.-11 cost, the scale of the ``hypotheses`` [(cost, angles)]."""
     models = CostEvaluator([make_target(v, roi=_cost_roi(v, shape.quads())) for v in capture.views],
@@ -1154,8 +1158,8 @@ def _judge(capture: Capture, view_costs: np.ndarray, shape, best_cost: float, hy
         if is_close_alternative(cost, best_cost):
             alt = forward_kinematics(capture.tape, a)
             near.append(Alternative(cost, alt.nodes[-1].copy(), alt.frames[-1].copy(), a))
-    j = assess(capture.views, capture.scene, capture.tape.width, view_costs, models, shape.nodes, shape.nodes[-1],
-               shape.frames[-1], best_cost, [(a.cost, a.tip_position) for a in near])
+    j = assess(capture.views, capture.scene, capture.tape.width, view_costs, models, shape.nodes, tip_position,
+               tip_rotation, best_cost, [(a.cost, a.tip_position) for a in near])
     return j.verdict, j.reason, j.tip_views, tuple(near)
 
 
@@ -1178,9 +1182,9 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     if method == "default":
         warm()  # once per process: compiling/loading the kernels is not fitting
     start = time.perf_counter()
-    fallback = None
+    fallback, hypotheses, tip = None, [], None
     if method == "default":
-        angles, trace, evaluations, fallback, hypotheses = fit_default(capture)
+        angles, trace, evaluations, fallback, hypotheses, tip = fit_default(capture)
     else:
         angles, history, evaluations = fit_paper(capture, callback)
     shape, view_costs = _costed(capture, angles)
@@ -1193,9 +1197,14 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
             angles = alternatives.pop(0)()
             trace = trace[:-1] + ([angles] if alternatives else [])
             shape, view_costs = _costed(capture, angles)
+            if not alternatives:
+                tip = None   # back to the plate fit: the strip went astray
     plate_cost = fallback[0] if fallback is not None else combine(view_costs)
-    verdict, reason, tip_views, alternatives = _judge(capture, view_costs, shape, min(plate_cost, combine(view_costs)),
-                                                      hypotheses if method == "default" else [])
+    # The tip frame: the strip's end (it follows a tip that curls within one plate, where
+    # the last plate is a chord), else the plate chain's F_n at P_C[n].
+    tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
+    verdict, reason, tip_views, alternatives = _judge(capture, view_costs, shape, tip_position, tip_rotation,
+                                                      min(plate_cost, combine(view_costs)), hypotheses)
     elapsed = time.perf_counter() - start
     full = CostEvaluator([make_target(v) for v in capture.views], capture.scene)
     if method == "default":
@@ -1204,6 +1213,6 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         if callback is not None:
             for k, (a, c) in enumerate(zip(trace, history), 1):
                 callback(k, c, a)
-    return Estimate(shape.nodes, angles, shape.nodes[-1].copy(), shape.frames[-1].copy(), combine(view_costs),
+    return Estimate(shape.nodes, angles, tip_position, tip_rotation, combine(view_costs),
                     view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
                     trace=tuple(trace) if method == "default" else ())
