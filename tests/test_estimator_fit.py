@@ -172,10 +172,20 @@ def test_strip_guard_keeps_the_plate_chain_when_the_strip_goes_astray(monkeypatc
     monkeypatch.setattr(fit, "STRIP", False)
     plate = estimate(c)
     monkeypatch.setattr(fit, "STRIP", True)
-    monkeypatch.setattr(fit, "_strip_stage", lambda chain, fields, angles: lambda frame_weight: angles + 0.5)
+
+    def astray(chain, fields, angles):
+        def output(frame_weight):
+            return angles + 0.5
+        output.tip = (np.full(3, 9.0), np.eye(3))
+        return output
+
+    monkeypatch.setattr(fit, "_strip_stage", astray)
     guarded = estimate(c)
     assert np.allclose(guarded.angles, plate.angles)
     assert guarded.cost == pytest.approx(plate.cost)
+    # The strip's tip frame goes with it: the tip is the plate chain's F_n again.
+    assert np.allclose(guarded.tip_position, plate.tip_position)
+    assert np.allclose(guarded.tip_rotation, plate.tip_rotation)
 
 
 def test_tip_frame_is_pulled_towards_the_strips(monkeypatch):
