@@ -1139,27 +1139,27 @@ def _cost_roi(view: View, quads: np.ndarray) -> tuple[int, int, int, int] | None
 
 
 def _costed(capture: Capture, angles: np.ndarray):
-    """The chain's shape and its per-view silhouette costs (eq. 7), rendered only where
-    the mask or the model is."""
+    """The chain's shape, its per-view silhouette costs (eq. 7), rendered only where the
+    mask or the model is, and the evaluator that did it."""
     shape = forward_kinematics(capture.tape, angles)
     quads = shape.quads()
-    return shape, CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views],
-                                capture.scene).view_costs(quads)
+    evaluator = CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views], capture.scene)
+    return shape, evaluator.view_costs(quads), evaluator
 
 
-def _judge(capture: Capture, view_costs: np.ndarray, shape, tip_position: np.ndarray, tip_rotation: np.ndarray,
-           best_cost: float, hypotheses: list):
-    """(verdict, reason, tip_views, alternatives) of the output ``shape``; ``best_cost``:
-    the plate fit's eq.-11 cost, the scale of the ``hypotheses`` [(cost, angles)]."""
-    models = CostEvaluator([make_target(v, roi=_cost_roi(v, shape.quads())) for v in capture.views],
-                           capture.scene).model_masks(shape.quads())
+def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, shape, tip_position: np.ndarray,
+           tip_rotation: np.ndarray, best_cost: float, hypotheses: list):
+    """(verdict, reason, tip_views, alternatives) of the output ``shape`` whose
+    ``view_costs`` ``evaluator`` gave; ``best_cost``: the plate fit's eq.-11 cost, the
+    scale of the ``hypotheses`` [(cost, angles)]."""
     near = []
     for cost, a in hypotheses:
         if is_close_alternative(cost, best_cost):
             alt = forward_kinematics(capture.tape, a)
             near.append(Alternative(cost, alt.nodes[-1].copy(), alt.frames[-1].copy(), a))
-    j = assess(capture.views, capture.scene, capture.tape.width, view_costs, models, shape.nodes, tip_position,
-               tip_rotation, best_cost, [(a.cost, a.tip_position) for a in near])
+    j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in evaluator.targets],
+               evaluator.model_masks(shape.quads()), tip_position, tip_rotation, best_cost,
+               [(a.cost, a.tip_position) for a in near])
     return j.verdict, j.reason, j.tip_views, tuple(near)
 
 
@@ -1187,7 +1187,7 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         angles, trace, evaluations, fallback, hypotheses, tip = fit_default(capture)
     else:
         angles, history, evaluations = fit_paper(capture, callback)
-    shape, view_costs = _costed(capture, angles)
+    shape, view_costs, evaluator = _costed(capture, angles)
     if fallback is not None:
         plate_cost, alternatives = fallback
         while alternatives and combine(view_costs) > STRIP_GUARD * plate_cost:
@@ -1196,14 +1196,14 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
             # The last alternative is the plate chain itself.
             angles = alternatives.pop(0)()
             trace = trace[:-1] + ([angles] if alternatives else [])
-            shape, view_costs = _costed(capture, angles)
+            shape, view_costs, evaluator = _costed(capture, angles)
             if not alternatives:
                 tip = None   # back to the plate fit: the strip went astray
     plate_cost = fallback[0] if fallback is not None else combine(view_costs)
     # The tip frame: the strip's end (it follows a tip that curls within one plate, where
     # the last plate is a chord), else the plate chain's F_n at P_C[n].
     tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
-    verdict, reason, tip_views, alternatives = _judge(capture, view_costs, shape, tip_position, tip_rotation,
+    verdict, reason, tip_views, alternatives = _judge(capture, evaluator, view_costs, shape, tip_position, tip_rotation,
                                                       min(plate_cost, combine(view_costs)), hypotheses)
     elapsed = time.perf_counter() - start
     full = CostEvaluator([make_target(v) for v in capture.views], capture.scene)

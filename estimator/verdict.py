@@ -62,26 +62,15 @@ class Judgement:
 def _outline(m: np.ndarray) -> tuple[float, float]:
     """(area, outline length) [px] of a uint8 0/1 mask: its pixels and its boundary pixels."""
     x, y, w, h = cv2.boundingRect(m)
-    roi = np.pad(m[y:y + h, x:x + w], 1)
+    roi = cv2.copyMakeBorder(m[y:y + h, x:x + w], 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
     return float(cv2.countNonZero(roi)), float(cv2.countNonZero(roi - cv2.erode(roi, np.ones((3, 3), np.uint8))))
 
 
-def observed_size(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray]:
-    """(areas, outline lengths), each (views,) [px]: the observed silhouette's counted
-    pixels (eq. 7's r_d) and its boundary pixels, ignored pixels excluded; at least 1."""
-    areas, lengths = np.ones(len(views)), np.ones(len(views))
-    for k, v in enumerate(views):
-        m = v.mask.astype(np.uint8)
-        if v.ignore is not None:
-            m[v.ignore] = 0
-        a, length = _outline(m)
-        areas[k], lengths[k] = max(1.0, a), max(1.0, length)
-    return areas, lengths
-
-
-def model_outline_lengths(model_masks: Sequence[np.ndarray]) -> np.ndarray:
-    """(views,) outline length [px] of each view's model silhouette (uint8 0/1 images)."""
-    return np.array([max(1.0, _outline(m)[1]) for m in model_masks])
+def sizes(masks: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(areas, outline lengths), each (views,) [px], of uint8 0/1 silhouettes (any crop
+    holding them): their pixels and their boundary pixels; at least 1."""
+    out = np.array([_outline(m) for m in masks]).reshape(-1, 2)
+    return np.maximum(out[:, 0], 1.0), np.maximum(out[:, 1], 1.0)
 
 
 def boundary_offsets(view_costs: np.ndarray, areas: np.ndarray, lengths: np.ndarray) -> np.ndarray:
@@ -89,10 +78,9 @@ def boundary_offsets(view_costs: np.ndarray, areas: np.ndarray, lengths: np.ndar
     return np.asarray(view_costs, float) * np.asarray(areas, float) / np.asarray(lengths, float)
 
 
-def end_points(nodes: np.ndarray, tip_position: np.ndarray, tip_rotation: np.ndarray, width: float) -> np.ndarray:
+def end_points(tip_position: np.ndarray, tip_rotation: np.ndarray, width: float) -> np.ndarray:
     """(k, 3) world points of the free end: the centre line's last TIP_SPAN_M and the tip's
     two corners."""
-    nodes = np.asarray(nodes, float)
     back = tip_position - TIP_SPAN_M * tip_rotation[:, 0]
     t = np.linspace(0.0, 1.0, 6)[:, None]
     line = back + t * (tip_position - back)
@@ -119,13 +107,14 @@ def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]
 
 
 def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs: np.ndarray,
-           model_masks: Sequence[np.ndarray], nodes: np.ndarray, tip_position: np.ndarray,
+           observed: Sequence[np.ndarray], models: Sequence[np.ndarray], tip_position: np.ndarray,
            tip_rotation: np.ndarray, best_cost: float, alternatives: Sequence[tuple[float, np.ndarray]]) -> Judgement:
-    """The whole judgement of an estimate (see the module's text); ``model_masks``: the
-    estimate's silhouette in each view (uint8 0/1 images of any crop holding it)."""
-    areas, lengths = observed_size(views)
-    offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, model_outline_lengths(model_masks)))
-    seen = seeing_views(views, end_points(nodes, tip_position, tip_rotation, width), boxes)
+    """The whole judgement of an estimate (see the module's text). ``observed``, ``models``:
+    each view's observed silhouette (ignored pixels cleared) and the estimate's, as uint8
+    0/1 images of any crop holding them; ``view_costs``: eq. 7 per view."""
+    areas, lengths = sizes(observed)
+    offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
+    seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     verdict, reason = judge(offsets, sum(seen), best_cost, tip_position, alternatives)
     return Judgement(verdict, reason, sum(seen), offsets)
 
