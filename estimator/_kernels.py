@@ -22,8 +22,9 @@ import weakref
 import numpy as np
 from numba import njit
 
-from .occlusion import hidden
+from .occlusion import SURFACE_M
 from .geometry import Camera
+from .scene import Box
 
 _camera_cache: "weakref.WeakKeyDictionary[Camera, np.ndarray]" = weakref.WeakKeyDictionary()
 
@@ -628,11 +629,58 @@ costs 0, one 2 px off 2): hiding is not free in the global search, else it fills
 with chains that dive behind the part."""
 
 
+@njit(cache=True, fastmath=False)
+def segments_hit_boxes(origin, points, centers, rotations, halves):
+    """occlusion.hidden compiled: (N,) whether the open segment ``origin`` (3,) -> each of
+    ``points`` (N, 3) crosses one of the boxes (centres (K, 3), world_from_box rotations
+    (K, 3, 3), half edges (K, 3) already shrunk by the surface margin)."""
+    n = points.shape[0]
+    out = np.zeros(n, np.bool_)
+    for k in range(centers.shape[0]):
+        o = np.empty(3)
+        for a in range(3):
+            o[a] = ((origin[0] - centers[k, 0]) * rotations[k, 0, a] + (origin[1] - centers[k, 1]) * rotations[k, 1, a]
+                    + (origin[2] - centers[k, 2]) * rotations[k, 2, a])
+        for i in range(n):
+            if out[i]:
+                continue
+            enter = -np.inf
+            leave = np.inf
+            miss = False
+            for a in range(3):
+                p = ((points[i, 0] - centers[k, 0]) * rotations[k, 0, a] + (points[i, 1] - centers[k, 1]) * rotations[k, 1, a]
+                     + (points[i, 2] - centers[k, 2]) * rotations[k, 2, a])
+                d = p - o[a]
+                h = halves[k, a]
+                if d == 0.0:
+                    if abs(o[a]) > h:
+                        miss = True
+                        break
+                    continue
+                t1 = (-h - o[a]) / d
+                t2 = (h - o[a]) / d
+                enter = max(enter, min(t1, t2))
+                leave = min(leave, max(t1, t2))
+            if not miss and enter < leave and leave > 0.0 and enter < 1.0 - 1e-9:
+                out[i] = True
+    return out
+
+
+def box_arrays(boxes) -> tuple:
+    """Scene boxes in kernel form: (centres (K, 3), rotations (K, 3, 3), half edges (K, 3)
+    shrunk by occlusion.SURFACE_M)."""
+    return (np.array([b.center for b in boxes], float).reshape(-1, 3),
+            np.array([b.rotation for b in boxes], float).reshape(-1, 3, 3),
+            np.array([b.half - SURFACE_M for b in boxes], float).reshape(-1, 3))
+
+
 def hidden_points(field, pts: np.ndarray) -> np.ndarray:
     """(B, s) which of the sample points (B, s, 3) the view's scene boxes hide from it."""
     if not field.boxes:
         return np.zeros(pts.shape[:2], np.bool_)
-    return hidden(field.camera.center, pts.reshape(-1, 3), field.boxes).reshape(pts.shape[:2])
+    return segments_hit_boxes(np.ascontiguousarray(field.camera.center, float),
+                              np.ascontiguousarray(pts.reshape(-1, 3), float),
+                              *field.box_arrays).reshape(pts.shape[:2])
 
 
 def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: float, delta_in: float):
@@ -656,6 +704,7 @@ def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: flo
 
 
 _warm = False
+_WARM_BOX = Box("warm", np.zeros(3), np.full(3, 0.1), np.eye(3))
 
 
 def warm() -> float:
@@ -687,6 +736,7 @@ def warm() -> float:
     t = np.array([0.5])
     F, E, _ = beam_candidates(np.eye(3)[None], np.zeros((1, 3)), np.eye(3)[None], 0.01, 0.005, t, t, t)
     diverse(np.arange(1), E, 1, 0.001)
+    segments_hit_boxes(np.zeros(3), np.ones((1, 3)), *box_arrays([_WARM_BOX]))
     lab = np.zeros((2, 2), np.int32)
     map_labels(lab, np.zeros(label_areas(lab, 1).size, np.uint8), np.zeros((2, 2), np.uint8))
     _warm = True

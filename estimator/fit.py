@@ -152,6 +152,8 @@ class _Field:
     and 3 on their own, for the beam's score (no gradient needed: half the memory read)."""
     boxes: tuple = ()
     """The capture's scene boxes: model points behind them from this camera count nothing."""
+    box_arrays: tuple = ()
+    """``boxes`` in the kernels' form (see :func:`_kernels.box_arrays`)."""
 
 
 def _drop_small(m: np.ndarray, connectivity: int) -> np.ndarray:
@@ -235,7 +237,7 @@ def _prepare(view: View, boxes: tuple = ()) -> _Field:
     if boxes and len(outline):
         outline = outline[~_on_box_outline(cam, boxes, outline)]
     return _Field(cam, x0, y0, field, ignore is not None, target, outline,
-                  _view_weight(roi, contours), (sdf, flag), tuple(boxes))
+                  _view_weight(roi, contours), (sdf, flag), tuple(boxes), _kernels.box_arrays(boxes) if boxes else ())
 
 
 BOX_EDGE_PX = 3.0
@@ -574,14 +576,15 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
     cost += 0.5 * np.sum(prior * prior, axis=1)
     boxes = fields[0].boxes if fields else ()
     if boxes:
-        # The tape cannot pass through a scene box: points inside one are charged.
-        depth, grad = penetration(pts.reshape(-1, 3), boxes)
+        # The tape cannot pass through a scene box: its corners inside one are charged.
+        corners = pts[:, ns:]
+        depth, grad = penetration(corners.reshape(-1, 3), boxes)
         pen = PENETRATION_PX_PER_M * depth.reshape(B, -1)
         rs.append(pen)
         cost += 0.5 * np.sum(pen * pen, axis=1)
         if jacobian:
             g = PENETRATION_PX_PER_M * grad.reshape(B, -1, 3)
-            js_pen = np.einsum("bpk,bpkn->bpn", g, J)
+            js_pen = np.einsum("bpk,bpkn->bpn", g, J[:, ns:])
     r = np.concatenate(rs, axis=1)
     if not jacobian:
         return r, None, cost
@@ -748,8 +751,8 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
             plate += f.weight * rho.sum(axis=2)
         boxes = fields[0].boxes if fields else ()
         if boxes:
-            depth, _ = penetration(pts.reshape(-1, 3), boxes)
-            plate += 1e3 * BEAM_PENETRATION * depth.reshape(pts.shape[:3]).sum(axis=2)
+            depth, _ = penetration(ends.reshape(-1, 3), boxes)   # the plate's end corners
+            plate += 1e3 * BEAM_PENETRATION * depth.reshape(plate.shape + (-1,)).sum(axis=-1)
         prior = ANGLE_PRIOR * np.sum(grid ** 2, axis=1)
         total = (scores[:, None] + plate + prior[None, :]).reshape(-1)
         count = beam * (4 if last else 1)
