@@ -1086,7 +1086,8 @@ def fit_default(capture: Capture, callback: Callback | None = None):
         fallback = (cost, alternatives + [lambda: plate])
         angles = output(STRIP_FRAME_WEIGHT)
         trace = trace + [angles]
-    return angles, trace, evaluator.evaluations, fallback, _hypotheses(chain, pool, angles), tip
+    winner = plate if STRIP else angles
+    return angles, trace, evaluator.evaluations, fallback, _hypotheses(chain, pool, winner), tip
 
 
 def _hypotheses(chain: _Chain, pool: list, winner: np.ndarray) -> list:
@@ -1163,7 +1164,7 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in evaluator.targets],
                evaluator.model_masks(shape.quads()), tip_position, tip_rotation, best_cost,
                [(a.cost, a.tip_position) for a in near])
-    return j.verdict, j.reason, j.tip_views, tuple(near)
+    return j.verdict, j.reason, j.tip_views, tuple(near), j.offsets_px
 
 
 def estimate(capture: Capture, method: str = "default", callback: Callback | None = None) -> Estimate:
@@ -1206,7 +1207,7 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     # The tip frame: the strip's end (it follows a tip that curls within one plate, where
     # the last plate is a chord), else the plate chain's F_n at P_C[n].
     tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
-    verdict, reason, tip_views, alternatives = _judge(capture, evaluator, view_costs, shape, tip_position, tip_rotation,
+    verdict, reason, tip_views, alternatives, offsets = _judge(capture, evaluator, view_costs, shape, tip_position, tip_rotation,
                                                       min(plate_cost, combine(view_costs)), hypotheses)
     elapsed = time.perf_counter() - start
     full = CostEvaluator([make_target(v) for v in capture.views], capture.scene)
@@ -1218,4 +1219,4 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
                 callback(k, c, a)
     return Estimate(shape.nodes, angles, tip_position, tip_rotation, combine(view_costs),
                     view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
-                    trace=tuple(trace) if method == "default" else ())
+                    trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)

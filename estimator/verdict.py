@@ -42,8 +42,8 @@ TIP_SEEN_FRACTION = 0.5
 """Fraction of the free end's points a camera must see to count as seeing it."""
 DISTINCT_TIP_M = 0.010
 """Tips further apart than this [m] make two shapes distinct hypotheses (formats.md)."""
-AMBIGUOUS_RATIO = 1.3
-AMBIGUOUS_ABS = 0.02
+AMBIGUOUS_RATIO = 1.25
+AMBIGUOUS_ABS = 0.005
 """A distinct alternative with eq.-11 cost <= AMBIGUOUS_RATIO * best + AMBIGUOUS_ABS
 explains the views nearly as well as the estimate."""
 
