@@ -1161,8 +1161,10 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
         if is_close_alternative(cost, best_cost):
             alt = forward_kinematics(capture.tape, a)
             near.append(Alternative(cost, alt.nodes[-1].copy(), alt.frames[-1].copy(), a))
-    j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in evaluator.targets],
-               evaluator.model_masks(shape.quads()), tip_position, tip_rotation, best_cost,
+    targets = evaluator.targets
+    models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(shape.quads()), targets)]
+    j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
+               models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
                [(a.cost, a.tip_position) for a in near])
     return j.verdict, j.reason, j.tip_views, tuple(near), j.offsets_px
 

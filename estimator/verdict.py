@@ -36,6 +36,13 @@ from .scene import Box
 
 POOR_OFFSET_PX = 4.0
 """Mean boundary distance [px] in a view above which the fit does not explain it."""
+END_OFFSET_PX = 2.0
+"""Mean boundary distance [px] around the tip's projection above which a view that sees the
+free end does not explain it: the end itself is wrong (a curl the model did not follow)
+however well the rest fits."""
+END_WINDOW_PX = 20
+"""Half size of the window around the tip's projection in which the free end's own fit is
+judged [px]."""
 TIP_SPAN_M = 0.005
 """Length of the free end [m] whose visibility decides whether a camera sees it."""
 TIP_SEEN_FRACTION = 0.5
@@ -88,6 +95,31 @@ def end_points(tip_position: np.ndarray, tip_rotation: np.ndarray, width: float)
     return np.vstack([line, tip_position + half, tip_position - half])
 
 
+def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: Sequence[np.ndarray],
+                origins: Sequence[tuple[int, int]], tip_position: np.ndarray) -> np.ndarray:
+    """(views,) mean boundary distance [px] within END_WINDOW_PX of the tip's projection:
+    how well the free end itself is explained in each view (inf where it projects outside
+    the crops). ``observed``, ``models``: uint8 crops with top-left pixels ``origins``."""
+    out = np.full(len(views), np.inf)
+    r = END_WINDOW_PX
+    for k, v in enumerate(views):
+        uv = v.camera.project(np.asarray(tip_position, float)[None])[0]
+        if not np.all(np.isfinite(uv)):
+            continue
+        x0, y0 = origins[k]
+        u, w = int(round(uv[0])) - x0, int(round(uv[1])) - y0
+        o, m = observed[k], models[k]
+        h, wd = o.shape
+        a0, a1, b0, b1 = max(0, w - r), min(h, w + r + 1), max(0, u - r), min(wd, u + r + 1)
+        if a1 <= a0 or b1 <= b0:
+            continue
+        ow, mw = o[a0:a1, b0:b1], m[a0:a1, b0:b1]
+        xor = float(cv2.countNonZero(cv2.bitwise_xor(ow, mw)))
+        length = min(_outline(ow)[1], _outline(mw)[1]) if ow.any() and mw.any() else 0.0
+        out[k] = xor / max(length, 1.0)
+    return out
+
+
 def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]) -> list[bool]:
     """Per view: does it see at least TIP_SEEN_FRACTION of ``points`` (k, 3)?"""
     out = []
@@ -107,15 +139,22 @@ def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]
 
 
 def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs: np.ndarray,
-           observed: Sequence[np.ndarray], models: Sequence[np.ndarray], tip_position: np.ndarray,
-           tip_rotation: np.ndarray, best_cost: float, alternatives: Sequence[tuple[float, np.ndarray]]) -> Judgement:
+           observed: Sequence[np.ndarray], models: Sequence[np.ndarray], origins: Sequence[tuple[int, int]],
+           tip_position: np.ndarray, tip_rotation: np.ndarray, best_cost: float,
+           alternatives: Sequence[tuple[float, np.ndarray]]) -> Judgement:
     """The whole judgement of an estimate (see the module's text). ``observed``, ``models``:
     each view's observed silhouette (ignored pixels cleared) and the estimate's, as uint8
-    0/1 images of any crop holding them; ``view_costs``: eq. 7 per view."""
+    0/1 crops whose top-left pixels are ``origins``; ``view_costs``: eq. 7 per view."""
     areas, lengths = sizes(observed)
     offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
+    ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(seen), best_cost, tip_position, alternatives)
+    bad_end = [k for k in range(len(views)) if seen[k] and ends[k] > END_OFFSET_PX]
+    if verdict is not Verdict.POOR_FIT and bad_end:
+        k = bad_end[0]
+        verdict, reason = Verdict.POOR_FIT, (f"view {k} does not explain the free end: mean boundary distance "
+                                             f"{ends[k]:.1f} px around the tip > {END_OFFSET_PX:g} px")
     return Judgement(verdict, reason, sum(seen), offsets)
 
 
