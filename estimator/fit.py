@@ -85,6 +85,9 @@ ANGLE_PRIOR = 0.05
 """Weight of a weak preference for small joint angles in the global stage."""
 WIDE_COST = 0.15
 """Eq.-11 cost above which a fit is poor enough to pay for the wide search."""
+WIDE_OFFSET_PX = 1.5
+"""... or when a view's mean boundary distance (its XOR over its outline length) is above
+this [px]: a view the first search's winner does not explain (about 1 in 10 good fits)."""
 WIDE_BEAM = 8
 """Partial chains kept per node in the wide search."""
 WIDE_VARIANTS = True
@@ -154,6 +157,8 @@ class _Field:
     """The capture's scene boxes: model points behind them from this camera count nothing."""
     box_arrays: tuple = ()
     """``boxes`` in the kernels' form (see :func:`_kernels.box_arrays`)."""
+    outline_px: float = 1.0
+    """Length of the observed silhouette's outer outline [px]."""
 
 
 def _drop_small(m: np.ndarray, connectivity: int) -> np.ndarray:
@@ -236,8 +241,10 @@ def _prepare(view: View, boxes: tuple = ()) -> _Field:
     outline = _outline(contours, ignore, x0, y0)
     if boxes and len(outline):
         outline = outline[~_on_box_outline(cam, boxes, outline)]
+    perimeter = max(1.0, sum(cv2.arcLength(c, True) for c in contours))
     return _Field(cam, x0, y0, field, ignore is not None, target, outline,
-                  _view_weight(roi, contours), (sdf, flag), tuple(boxes), _kernels.box_arrays(boxes) if boxes else ())
+                  _view_weight(roi, perimeter), (sdf, flag), tuple(boxes), _kernels.box_arrays(boxes) if boxes else (),
+                  perimeter)
 
 
 BOX_EDGE_PX = 3.0
@@ -259,14 +266,13 @@ def _on_box_outline(camera: Camera, boxes, points: np.ndarray) -> np.ndarray:
     return out
 
 
-def _view_weight(roi: np.ndarray, contours) -> float:
+def _view_weight(roi: np.ndarray, perimeter: float) -> float:
     """Factor on a view's robust terms: 1, less for a very thin silhouette (the tape seen
     nearly edge-on). There a pixel of segmentation or calibration error moves the boundary
     across the whole band, so the edge terms of the right shape land outside and that one
     view would outvote the others (measured: sim edge-on captures)."""
     if THIN_PX <= 0:
         return 1.0
-    perimeter = sum(cv2.arcLength(c, True) for c in contours)
     thickness = 2.0 * float(cv2.countNonZero(roi)) / max(perimeter, 1.0)   # mean width [px]
     return min(1.0, thickness / THIN_PX) ** 2
 
@@ -1063,7 +1069,8 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     starts = np.array(_beam_search(capture.tape, fields))
     pool: list = []
     angles, trace, cost = _refine(chain, fields, starts, silhouette_costs, pool)
-    if cost > WIDE_COST:
+    worst_px = max(c * f.target.area / f.outline_px for c, f in zip(evaluator.view_costs(chain.quads(angles)[0]), fields))
+    if cost > WIDE_COST or worst_px > WIDE_OFFSET_PX:
         # A poor fit: only these pay for a wider search (a finer, larger beam and the
         # other branches next to the winner); it replaces the first result only when its
         # silhouette cost is clearly lower.
