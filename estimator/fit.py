@@ -30,6 +30,7 @@ analytic Jacobian:
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from dataclasses import dataclass
@@ -43,10 +44,10 @@ from .capture import Capture, View
 from .errors import EstimateError
 from .geometry import Camera, _distort
 from .occlusion import penetration
-from .result import Alternative, Estimate
+from .result import Alternative, Estimate, Verdict
 from .silhouette import CostEvaluator, ViewTarget, combine, make_target, project_quads
 from .tape import TapeSpec, forward_kinematics, joint_rotations
-from .verdict import DISTINCT_TIP_M, assess, is_close_alternative
+from .verdict import DISTINCT_TIP_M, assess, is_close_alternative, mask_fault
 
 Callback = Callable[[int, float, np.ndarray], None]
 
@@ -1176,6 +1177,27 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     return j.verdict, j.reason, j.tip_views, tuple(near), j.offsets_px
 
 
+def _garbage(capture: Capture, faults: list, method: str, start: float) -> Estimate:
+    """A "poor_fit" estimate of a capture whose views ``faults`` [(index, why)] hold no tape
+    silhouette: the fit of the other views (a straight tape when none is left), costed on
+    every view; nothing may act on it."""
+    bad = {k for k, _ in faults}
+    rest = [v for k, v in enumerate(capture.views) if k not in bad]
+    if rest:
+        est = estimate(dataclasses.replace(capture, views=rest), method)
+        angles, tip = est.angles, (est.tip_position, est.tip_rotation)
+    else:
+        angles = np.zeros((capture.tape.n, 3))
+    shape, view_costs, _ = _costed(capture, angles)
+    if not rest:
+        tip = (shape.nodes[-1].copy(), shape.frames[-1].copy())
+    k, why = faults[0]
+    reason = f"view {k} ({capture.views[k].camera.name}) is not a tape silhouette: {why}"
+    return Estimate(shape.nodes, angles, tip[0], tip[1], combine(view_costs), view_costs,
+                    time.perf_counter() - start, method, verdict=Verdict.POOR_FIT, verdict_reason=reason,
+                    view_offsets_px=np.full(len(capture.views), np.inf))
+
+
 def estimate(capture: Capture, method: str = "default", callback: Callback | None = None) -> Estimate:
     """Fit the plate chain to ``capture``'s silhouettes.
 
@@ -1195,6 +1217,10 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     if method == "default":
         warm()  # once per process: compiling/loading the kernels is not fitting
     start = time.perf_counter()
+    faults = [(k, mask_fault(v)) for k, v in enumerate(capture.views)]
+    faults = [(k, f) for k, f in faults if f]
+    if faults:
+        return _garbage(capture, faults, method, start)
     fallback, hypotheses, tip = None, [], None
     if method == "default":
         angles, trace, evaluations, fallback, hypotheses, tip = fit_default(capture)

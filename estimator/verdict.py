@@ -73,6 +73,34 @@ def _outline(m: np.ndarray) -> tuple[float, float]:
     return float(cv2.countNonZero(roi)), float(cv2.countNonZero(roi - cv2.erode(roi, np.ones((3, 3), np.uint8))))
 
 
+MAX_COVER = 0.4
+"""A mask whose tape covers more than this fraction of its image is not a tape's silhouette
+(an inverted or white mask)."""
+MAX_REGIONS = 200
+"""... nor one split into more regions than this (noise); a tape's mask is one region and a
+few speckles."""
+MIN_AREA_PX = 30
+"""... nor one with fewer tape pixels than this."""
+
+
+def mask_fault(view: View) -> str:
+    """Why ``view``'s mask is not a tape's silhouette ('' when it may be one)."""
+    m = view.mask.astype(np.uint8)
+    if view.ignore is not None:
+        m[view.ignore] = 0
+    area = cv2.countNonZero(m)
+    total = m.size - (0 if view.ignore is None else int(np.count_nonzero(view.ignore)))
+    if area < MIN_AREA_PX:
+        return f"its mask shows {area} tape pixels"
+    if area > MAX_COVER * max(total, 1):
+        return f"its mask covers {100 * area / max(total, 1):.0f} % of the image (inverted or white?)"
+    x, y, w, h = cv2.boundingRect(m)
+    regions = cv2.connectedComponents(m[y:y + h, x:x + w], connectivity=8)[0] - 1
+    if regions > MAX_REGIONS:
+        return f"its mask is {regions} separate regions (noise)"
+    return ""
+
+
 def sizes(masks: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """(areas, outline lengths), each (views,) [px], of uint8 0/1 silhouettes (any crop
     holding them): their pixels and their boundary pixels; at least 1."""
