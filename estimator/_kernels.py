@@ -666,6 +666,33 @@ def segments_hit_boxes(origin, points, centers, rotations, halves):
     return out
 
 
+@njit(cache=True, fastmath=False)
+def box_penetration(points, centers, rotations, halves):
+    """occlusion.penetration compiled (halves already shrunk by the margin): (depth (N,),
+    gradient (N, 3))."""
+    n = points.shape[0]
+    depth = np.zeros(n)
+    grad = np.zeros((n, 3))
+    for k in range(centers.shape[0]):
+        for i in range(n):
+            best = np.inf
+            axis = 0
+            side = 1.0
+            for a in range(3):
+                loc = ((points[i, 0] - centers[k, 0]) * rotations[k, 0, a] + (points[i, 1] - centers[k, 1]) * rotations[k, 1, a]
+                       + (points[i, 2] - centers[k, 2]) * rotations[k, 2, a])
+                slack = halves[k, a] - abs(loc)
+                if slack < best:
+                    best = slack
+                    axis = a
+                    side = -1.0 if loc > 0 else 1.0
+            if best > depth[i]:
+                depth[i] = best
+                for c in range(3):
+                    grad[i, c] = side * rotations[k, c, axis]
+    return depth, grad
+
+
 def box_arrays(boxes) -> tuple:
     """Scene boxes in kernel form: (centres (K, 3), rotations (K, 3, 3), half edges (K, 3)
     shrunk by occlusion.SURFACE_M)."""
@@ -737,6 +764,7 @@ def warm() -> float:
     F, E, _ = beam_candidates(np.eye(3)[None], np.zeros((1, 3)), np.eye(3)[None], 0.01, 0.005, t, t, t)
     diverse(np.arange(1), E, 1, 0.001)
     segments_hit_boxes(np.zeros(3), np.ones((1, 3)), *box_arrays([_WARM_BOX]))
+    box_penetration(np.ones((1, 3)), *box_arrays([_WARM_BOX]))
     lab = np.zeros((2, 2), np.int32)
     map_labels(lab, np.zeros(label_areas(lab, 1).size, np.uint8), np.zeros((2, 2), np.uint8))
     _warm = True

@@ -43,7 +43,6 @@ from . import _kernels
 from .capture import Capture, View
 from .errors import EstimateError
 from .geometry import Camera, _distort
-from .occlusion import penetration
 from .result import Alternative, Estimate, Verdict
 from .silhouette import CostEvaluator, ViewTarget, combine, make_target, project_quads
 from .tape import TapeSpec, forward_kinematics, joint_rotations
@@ -585,7 +584,7 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
     if boxes:
         # The tape cannot pass through a scene box: its corners inside one are charged.
         corners = pts[:, ns:]
-        depth, grad = penetration(corners.reshape(-1, 3), boxes)
+        depth, grad = _kernels.box_penetration(np.ascontiguousarray(corners.reshape(-1, 3)), *fields[0].box_arrays)
         pen = PENETRATION_PX_PER_M * depth.reshape(B, -1)
         rs.append(pen)
         cost += 0.5 * np.sum(pen * pen, axis=1)
@@ -758,7 +757,8 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
             plate += f.weight * rho.sum(axis=2)
         boxes = fields[0].boxes if fields else ()
         if boxes:
-            depth, _ = penetration(ends.reshape(-1, 3), boxes)   # the plate's end corners
+            depth, _ = _kernels.box_penetration(np.ascontiguousarray(ends.reshape(-1, 3), float),
+                                                *fields[0].box_arrays)   # the plates' end corners
             plate += 1e3 * BEAM_PENETRATION * depth.reshape(plate.shape + (-1,)).sum(axis=-1)
         prior = ANGLE_PRIOR * np.sum(grid ** 2, axis=1)
         total = (scores[:, None] + plate + prior[None, :]).reshape(-1)
