@@ -12,7 +12,7 @@ from tapecell.cell.cross import CrossDetection
 from tapecell.estimator.capture import load_cameras
 from tapecell.estimator.geometry import Camera, rot_x, rot_z
 from fakes import FakeRobot, install_fake_rtde
-from tapecell.cell.config import load_cell_config
+from tapecell.cell.config import CellConfigError, load_cell_config
 
 K = np.array([[1371.0, 0, 319.5], [0, 1371.0, 239.5], [0, 0, 1]])
 
@@ -82,8 +82,9 @@ def test_plan_reaches_the_default_grid_and_faces_the_cameras():
 def test_unreachable_grid_is_an_error():
     cell = load_cell_config()
     far = dataclasses.replace(cell.calibration, grid_min=(1.2, 0.4, 0.1), grid_max=(1.3, 0.6, 0.2))
-    with pytest.raises(CalibrationError, match="unreachable"):
+    with pytest.raises(CellConfigError, match="unreachable") as e:   # the cell file's grid: bad input
         plan_poses(dataclasses.replace(cell, calibration=far), 2)
+    assert e.value.exit_code == 2
 
 
 def _dets(pix, ok):
