@@ -439,11 +439,14 @@ class URArm(Arm):
             ok = bool(self._call("control", method, *args, timeout=deadline, what=what))
         except RobotSilent:
             raise
-        except BaseException:
+        except BaseException as e:
             try:
                 stop()
             except TapecellError:
-                pass   # the link is gone too: the move's own error is what the caller needs
+                # The RTDE link is gone too: stop on the controller's other channels.
+                note = send_stop(self.host, self.dashboard_port, self.script_port)
+                if isinstance(e, ArmError):
+                    raise ArmError(f"{e}; {note}") from None
             raise
         if not ok:
             stop()
