@@ -16,11 +16,11 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.errors import HardwareError, TapecellError
 
 
-class ArmError(TapecellError):
-    """The arm cannot be reached, refused a command, or failed during a motion."""
+class ArmError(HardwareError):
+    """The arm cannot be reached, refused a command, or failed during a motion (exit 3)."""
 
 
 class ArmNotConnectedError(ArmError):

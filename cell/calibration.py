@@ -22,15 +22,16 @@ import cv2
 import numpy as np
 import scipy.linalg
 
-from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.errors import TaskFailed
 from tapecell.estimator.geometry import Camera, rot_x, rot_y, rot_z
 
+from .config import CellConfigError
 from .cross import REASONS, CrossDetection, CrossParams, detect_cross
 
 
-class CalibrationError(TapecellError):
-    """Calibration cannot give trustworthy cameras (too few poses, large residuals,
-    an unreachable grid); nothing is written."""
+class CalibrationError(TaskFailed):
+    """Calibration cannot give trustworthy cameras (too few poses, large residuals);
+    nothing is written (exit 1)."""
 
 
 DISTORTION_MODELS = {
@@ -141,8 +142,8 @@ def calibrate_camera(name: str, size: tuple[int, int], points_world: np.ndarray,
     ``max_rounds`` times), which removes mis-detections without trimming honest noise.
     """
     if distortion_model not in DISTORTION_MODELS:
-        raise CalibrationError(f"unknown distortion model '{distortion_model}' "
-                               f"(known: {', '.join(DISTORTION_MODELS)})")
+        raise CellConfigError(f"unknown distortion model '{distortion_model}' "
+                              f"(known: {', '.join(DISTORTION_MODELS)})")
     X = np.asarray(points_world, float).reshape(-1, 3)
     x = np.asarray(pixels, float).reshape(-1, 2)
     flags = DISTORTION_MODELS[distortion_model]
@@ -341,9 +342,10 @@ def plan_poses(cell, n_cameras: int, q_start: Sequence[float] | None = None,
             failures.append((p, collections.Counter(reasons).most_common(1)[0][0]))
     if failures:
         p, why = failures[0]
-        raise CalibrationError(f"{cell.source}: calibration grid unreachable at {len(failures)} of "
-                               f"{len(poses) + len(failures)} points, first at "
-                               f"[{p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}] m: {why}")
+        # The cell file's [calibration] grid is wrong for this cell: bad input, not a failed task.
+        raise CellConfigError(f"{cell.source}: calibration grid unreachable at {len(failures)} of "
+                              f"{len(poses) + len(failures)} points, first at "
+                              f"[{p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f}] m: {why}")
     return poses
 
 

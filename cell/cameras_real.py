@@ -11,11 +11,15 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.errors import HardwareError, TapecellError
 
 
 class CameraSourceError(TapecellError):
-    """A camera cannot be opened or read, or an image file is missing or unreadable."""
+    """An image folder or file is missing or unreadable (bad input, exit 2)."""
+
+
+class CameraDeviceError(HardwareError):
+    """A camera device cannot be opened or gives no frame (hardware, exit 3)."""
 
 
 class VideoCameras:
@@ -31,7 +35,7 @@ class VideoCameras:
             for name, dev in zip(names, devices):
                 cap = cv2.VideoCapture(dev)
                 if not cap.isOpened():
-                    raise CameraSourceError(f"camera {name}: cannot open video device {dev!r}")
+                    raise CameraDeviceError(f"camera {name}: cannot open video device {dev!r}")
                 self._caps[name] = cap
         except BaseException:
             self.close()
@@ -49,7 +53,7 @@ class VideoCameras:
                 cap.grab()
             ok, frame = cap.read()
             if not ok or frame is None:
-                raise CameraSourceError(f"camera {name}: no frame from the device")
+                raise CameraDeviceError(f"camera {name}: no frame from the device")
             out[name] = cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
         return out
 

@@ -221,12 +221,44 @@ class CalibrationSection:
 
 
 @dataclass(frozen=True)
+class GripperIOSection:
+    """How the real gripper is wired to the UR controller's digital I/O (``[robot.gripper]``).
+
+    output_kind: "standard" (control box outputs 0-7) or "tool" (tool flange outputs 0-1).
+    close_output: the output that closes the jaws; open_output: the one that opens them, or
+    -1 when one output does both (then ``close_output`` at the other level opens).
+    active_high: the level that switches an output on (false for inverted wiring).
+    close_wait_s, open_wait_s: how long the jaws take to move [s].
+    closed_input: a standard digital input (0-7) that is on while the jaws are closed, or -1
+    for none; closed_input_timeout_s: how long to wait for it after ``close_wait_s`` [s]."""
+    output_kind: str = "standard"
+    close_output: int = 0
+    open_output: int = -1
+    active_high: bool = True
+    close_wait_s: float = 0.5
+    open_wait_s: float = 0.5
+    closed_input: int = -1
+    closed_input_timeout_s: float = 1.0
+
+
+@dataclass(frozen=True)
 class RobotSection:
     """The real cell: UR controller address and the cameras in ``[[cameras.camera]]`` order,
-    each an OpenCV ``VideoCapture`` device index (int) or a URL / device path (str)."""
+    each an OpenCV ``VideoCapture`` device index (int) or a URL / device path (str).
+
+    gripper: its I/O wiring. Deadlines [s]: connect_timeout_s for connecting, call_timeout_s
+    for every read, check and I/O call, and a move may take its expected duration plus
+    move_margin_s. dashboard_port and script_port are where a stop is sent when the robot
+    stops answering (the dashboard server's "stop" and a URScript ``stopj``)."""
     host: str
     port: int
     camera_devices: tuple[int | str, ...]
+    gripper: GripperIOSection = GripperIOSection()
+    connect_timeout_s: float = 10.0
+    call_timeout_s: float = 2.0
+    move_margin_s: float = 2.0
+    dashboard_port: int = 29999
+    script_port: int = 30002
 
 
 @dataclass(frozen=True)
@@ -403,8 +435,28 @@ def _check(cfg: CellConfig) -> None:
     need(cfg.grasp.lift_mode in ("arc", "peel"), "'grasp.lift_mode' must be \"arc\" or \"peel\"")
     need(all(a < b for a, b in zip(cfg.limits.workspace_min, cfg.limits.workspace_max)),
          "'limits.workspace_min' must be below 'limits.workspace_max' on every axis")
+    _check_robot(cfg.robot, need)
     for cam in cfg.cameras.camera:
         _check_camera_sees_tape(cfg, cam)
+
+
+def _check_robot(r: RobotSection, need) -> None:
+    g = r.gripper
+    need(bool(r.host.strip()), "'robot.host' must not be empty")
+    for key in ("port", "dashboard_port", "script_port"):
+        need(1 <= getattr(r, key) <= 65535, f"'robot.{key}' must be a TCP port (1-65535)")
+    for key in ("connect_timeout_s", "call_timeout_s", "move_margin_s"):
+        need(getattr(r, key) > 0, f"'robot.{key}' must be positive")
+    need(g.output_kind in ("standard", "tool"), "'robot.gripper.output_kind' must be \"standard\" or \"tool\"")
+    pins = 8 if g.output_kind == "standard" else 2
+    need(0 <= g.close_output < pins, f"'robot.gripper.close_output' must be a {g.output_kind} digital output "
+                                     f"0-{pins - 1}")
+    need(g.open_output == -1 or (0 <= g.open_output < pins and g.open_output != g.close_output),
+         f"'robot.gripper.open_output' must be -1 (none) or another {g.output_kind} digital output 0-{pins - 1}")
+    need(g.closed_input == -1 or 0 <= g.closed_input < 8,
+         "'robot.gripper.closed_input' must be -1 (none) or a standard digital input 0-7")
+    for key in ("close_wait_s", "open_wait_s", "closed_input_timeout_s"):
+        need(getattr(g, key) >= 0, f"'robot.gripper.{key}' must be >= 0")
 
 
 def _check_camera_sees_tape(cfg: CellConfig, cam: CameraPlacement) -> None:

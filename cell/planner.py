@@ -44,7 +44,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.errors import TaskFailed
 from tapecell.estimator.geometry import is_rotation
 
 from .arm import Arm, ArmError, ProtectiveStopError
@@ -68,8 +68,8 @@ MAX_JOINT_STEP_RAD = 0.25      # per ~5 mm of a straight segment: more means a s
 PATH_STEP_M = 0.005
 
 
-class PlanRefused(TapecellError):
-    """The planner will not grasp. ``reason`` is a short tag (see the module docstring)."""
+class PlanRefused(TaskFailed):
+    """The planner will not grasp (exit 1). ``reason`` is a short tag (see the module docstring)."""
 
     def __init__(self, reason: str, detail: str) -> None:
         super().__init__(f"grasp refused ({reason}): {detail}")

@@ -13,14 +13,14 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.errors import TaskFailed
 
 from .poses import matrix_to_pose6, pose6_to_matrix
 
 PROBE_LABELS = ("tip", "tip_left", "tip_right")
 
 
-class ProbeError(TapecellError):
+class ProbeError(TaskFailed):
     """A point could not be probed (no contact, unreachable, nothing recorded)."""
 
 

@@ -54,10 +54,12 @@ The file is written to a hidden temporary sibling and renamed into place by
 """
 from __future__ import annotations
 
+import atexit
 import contextlib
 import dataclasses
 import os
 import uuid
+import weakref
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
@@ -155,14 +157,30 @@ def open_recording(path: str | os.PathLike, app_id: str = "tapecell",
         path.parent.mkdir(parents=True, exist_ok=True)
         stream.save(tmp, default_blueprint=default_blueprint(camera_names))
     except (OSError, RuntimeError) as e:  # rerun reports file errors as RuntimeError
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
         raise RecordingError(f"{path}: cannot write the recording ({e})") from None
+    _OPEN.add(stream)
     return stream
+
+
+_OPEN: "weakref.WeakSet[RecordingFile]" = weakref.WeakSet()
+"""Recordings not yet closed or discarded: removed at exit, so a process that ends without
+closing one (an uncaught error, SIGTERM through the CLI) leaves no hidden .tmp file."""
+
+
+@atexit.register
+def _discard_unclosed() -> None:
+    for stream in list(_OPEN):
+        with contextlib.suppress(Exception):
+            discard_recording(stream)
 
 
 def close_recording(stream: rr.RecordingStream) -> None:
     """Flush and close the stream; a :class:`RecordingFile` is renamed into place."""
     stream.flush()
     stream.disconnect()
+    _OPEN.discard(stream)
     if isinstance(stream, RecordingFile) and stream.temp_path.exists():
         os.replace(stream.temp_path, stream.path)
 
@@ -170,6 +188,7 @@ def close_recording(stream: rr.RecordingStream) -> None:
 def discard_recording(stream: rr.RecordingStream) -> None:
     """Close the stream and remove its temporary file (a failed run writes nothing)."""
     stream.disconnect()
+    _OPEN.discard(stream)
     if isinstance(stream, RecordingFile):
         with contextlib.suppress(FileNotFoundError):
             os.unlink(stream.temp_path)

@@ -22,14 +22,15 @@ from typing import Any, Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.errors import TaskFailed
 
 from .arm import Arm
 from .poses import interpolate_pose6, pose6_to_matrix, rotation_angle_between
 
 
-class SafetyError(TapecellError):
-    """A target or a motion violates the cell's safety limits; nothing was sent."""
+class SafetyError(TaskFailed):
+    """A target or a motion violates the cell's safety limits; nothing was sent (exit 1:
+    the task cannot be done within the limits)."""
 
 
 @dataclass(frozen=True, eq=False)

@@ -13,9 +13,10 @@ from typing import Any, Mapping, Sequence
 import cv2
 import numpy as np
 
-from .errors import CaptureError
+from .errors import CaptureError, OutputError
 from .geometry import Camera, check_finite, check_rotation
 from .io import atomic_dir, atomic_write_json, to_json
+from .sanity import check_mask_coverage, check_tape_units, check_view_geometry
 from .scene import Box, parse_scene, scene_json
 from .segment import SegmentationParams, segment_tape
 from .tape import TapeSpec
@@ -168,6 +169,7 @@ def load_capture(path: str | Path, segmentation: Mapping[str, Any] | None = None
     if doc.get("units", "m") != "m":
         raise CaptureError(f"{cj}: units must be 'm', got {doc.get('units')!r}")
     tape = parse_tape(doc.get("tape"), str(cj))
+    check_tape_units(tape, str(cj))
     cams = doc.get("cameras")
     if not isinstance(cams, list) or len(cams) < 1:
         raise CaptureError(f"{cj}: needs at least one camera")
@@ -183,18 +185,22 @@ def load_capture(path: str | Path, segmentation: Mapping[str, Any] | None = None
         names.add(camera.name)
         image = None
         if cd.get("mask"):
-            mask = _read_mask(root / str(cd["mask"]), camera, "mask")
+            mask_path = root / str(cd["mask"])
+            mask = _read_mask(mask_path, camera, "mask")
             if cd.get("image"):
                 image = _read_rgb(root / str(cd["image"]), camera)
         elif cd.get("image"):
-            image = _read_rgb(root / str(cd["image"]), camera)
+            mask_path = root / str(cd["image"])
+            image = _read_rgb(mask_path, camera)
             mask = segment_tape(image, params)
         else:
             raise CaptureError(f"{cj}: camera {camera.name} has neither 'mask' nor 'image'")
+        check_mask_coverage(mask, camera.name, str(mask_path))
         ignore = _read_mask(root / str(cd["ignore"]), camera, "ignore mask") if cd.get("ignore") else None
         visible = mask if ignore is None else mask & ~ignore
         if not visible.any():
             raise CaptureError(f"{root}: camera {camera.name} sees no tape")
+        check_view_geometry(camera, tape, visible, str(cj))
         views.append(View(camera, mask, ignore, image))
     scene = parse_scene(doc.get("scene"), str(cj))
     truth = load_truth(root / "truth.json") if (root / "truth.json").exists() else None
@@ -241,10 +247,17 @@ def capture_json(capture: Capture, rgb: bool = False) -> dict[str, Any]:
     return doc
 
 
-def save_capture(capture: Capture, path: str | Path, rgb: bool = False) -> Path:
-    """Write ``capture`` as a `tape-capture/1` directory, atomically (with truth.json when known)."""
+def save_capture(capture: Capture, path: str | Path, rgb: bool = False, force: bool = False) -> Path:
+    """Write ``capture`` as a `tape-capture/1` directory (with truth.json when known).
+
+    A new or empty ``path`` appears complete or not at all. A non-empty one is refused
+    (:class:`~estimator.errors.OutputError`) unless ``force``; then only the capture's own
+    files are replaced and nothing else in it is touched (see ``io.atomic_dir``)."""
     path = Path(path)
-    with atomic_dir(path) as tmp:
+    if force and capture.truth is None and (path / "truth.json").exists():
+        raise OutputError(f"{path}: holds a truth.json that this capture (without truth) would not "
+                          "replace, and a later load would take it for this capture's; choose another folder")
+    with atomic_dir(path, force) as tmp:
         (tmp / "capture.json").write_text(to_json(capture_json(capture, rgb)) + "\n")
         for v in capture.views:
             (tmp / f"{v.camera.name}.png").write_bytes(_png(v.mask))

@@ -82,6 +82,10 @@ def transform(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
 
 
 _DIST_LENGTHS = (0, 4, 5, 8, 12)
+MAX_IMAGE_SIDE = 20000
+"""Pixels a side: a larger image is not from a camera (and would not fit in memory)."""
+MAX_CAMERA_DISTANCE_M = 20.0
+"""No camera of a cell is farther from the robot's base: a larger |t| is in millimetres."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -178,11 +182,18 @@ class Camera:
             if key not in d:
                 raise CaptureError(f"{where}{what} has no '{key}'")
         width, height = d["width"], d["height"]
-        if not (isinstance(width, int) and isinstance(height, int)) or width <= 0 or height <= 0:
+        if (not (isinstance(width, int) and isinstance(height, int)) or isinstance(width, bool)
+                or isinstance(height, bool) or width <= 0 or height <= 0):
             raise CaptureError(f"{where}{what} has an invalid image size {width}x{height}")
+        if width > MAX_IMAGE_SIDE or height > MAX_IMAGE_SIDE:
+            raise CaptureError(f"{where}{what} has an image size {width}x{height} px; more than "
+                               f"{MAX_IMAGE_SIDE} px a side is not a camera image")
         K = check_finite(d["K"], (3, 3), f"{what} K", source)
         if K[0, 0] <= 0 or K[1, 1] <= 0 or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
             raise CaptureError(f"{where}{what} K is not an intrinsic matrix [[fx,s,cx],[0,fy,cy],[0,0,1]]")
+        if not (-0.5 <= K[0, 2] <= width - 0.5 and -0.5 <= K[1, 2] <= height - 0.5):
+            raise CaptureError(f"{where}{what} K puts the principal point at ({K[0, 2]:.1f}, {K[1, 2]:.1f}) px, "
+                               f"outside its {width}x{height} image")
         dist = check_finite(d.get("dist", []), None, f"{what} dist", source).reshape(-1)
         if dist.size not in _DIST_LENGTHS:
             raise CaptureError(f"{where}{what} dist has {dist.size} terms; expected one of {_DIST_LENGTHS[1:]}")
@@ -190,6 +201,9 @@ class Camera:
             dist = np.zeros(5)
         R = check_rotation(d["R"], f"{what} R", source)
         t = check_finite(d["t"], (3,), f"{what} t", source)
+        if np.linalg.norm(t) > MAX_CAMERA_DISTANCE_M:
+            raise CaptureError(f"{where}{what} is {np.linalg.norm(t):.4g} m from the world origin (|t|); the file "
+                               f"looks like it is in millimetres (metres expected)")
         rms = d.get("rms_px")
         if rms is not None:
             rms = float(check_finite(rms, (), f"{what} rms_px", source))

@@ -12,7 +12,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.errors import TaskFailed
 
 from .cell import SimCell
 from tapecell.cell.config import TOOL_NAMES, matrix_to_pose, pose_to_matrix
@@ -22,7 +22,7 @@ from .ur5e import IKError, ik
 _WAYPOINT_STEPS = 10   # a Cartesian move solves IK every this many physics steps
 
 
-class SimArmError(TapecellError):
+class SimArmError(TaskFailed):
     """A simulated move was refused or did not arrive."""
 
 

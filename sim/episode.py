@@ -117,6 +117,11 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         if outcome.detail:
             doc["detail"] = outcome.detail
         return doc
+    except BaseException:
+        if stream is not None:          # an error, not a failed grasp: no partial recording
+            rec.discard_recording(stream)
+            stream = None
+        raise
     finally:
         if cell is not None:
             cell.close()  # free the renderers' GL contexts, also after a refusal or an error

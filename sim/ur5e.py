@@ -14,10 +14,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from tapecell.cell.kinematics import JOINT_LOWER, JOINT_UPPER, dh_frames, fk as dh_fk
-from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.errors import TaskFailed
 
 
-class IKError(TapecellError):
+class IKError(TaskFailed):
     """No joint solution within the joint limits reaches the requested pose."""
 
 

@@ -4,16 +4,25 @@ probe): one controller whose state and call log the tests inspect.
     robot = FakeRobot(q_start)
     install_fake_rtde(monkeypatch, robot)                 # URArm still probes the RTDE port
     install_fake_rtde(monkeypatch, robot, probe=False)    # ... or skip that socket check
+
+The fakes live in this process, so URArm talks to them through a ThreadLink (the real
+driver's ProcessLink would import the real ur_rtde in its child).
+
+The controller's kinematics are the nominal UR5e model composed with ``robot.calibration``
+(a flange-frame 4x4, identity by default): a real UR's calibrated kinematics put the tool
+a few mm from the nominal model. ``getActualTCPPose``, ``getForwardKinematics`` and
+``getInverseKinematics`` all use it, as a real controller does.
 """
 from __future__ import annotations
 
 import sys
+import threading
 import types
 
 import numpy as np
 
-from tapecell.cell.kinematics import fk
-from tapecell.cell.poses import matrix_to_pose6
+from tapecell.cell.kinematics import fk, ik_nearest
+from tapecell.cell.poses import invert, matrix_to_pose6, pose6_to_matrix
 
 
 class FakeRobot:
@@ -32,6 +41,14 @@ class FakeRobot:
         self.move_raises: Exception | None = None
         self.pose_ok = True
         self.construct_failures = 0
+        self.calibration = np.eye(4)
+        self.digital_in = [False] * 8
+        self.close_sets_input: int | None = None   # a gripper input wired to the close output
+        self.move_blocks: threading.Event | None = None   # moves wait on it (a silent robot)
+
+    def world_from_flange(self, q) -> np.ndarray:
+        """The controller's own forward kinematics."""
+        return fk(np.asarray(q, float)) @ self.calibration
 
 
 def install_fake_rtde(monkeypatch, robot: FakeRobot, probe: bool = True) -> None:
@@ -78,15 +95,35 @@ def install_fake_rtde(monkeypatch, robot: FakeRobot, probe: bool = True) -> None
 
         def moveL(self, pose, speed, acceleration):
             robot.log.append(("moveL", pose, speed, acceleration))
+            if robot.move_blocks is not None:
+                robot.move_blocks.wait()
             if robot.move_raises:
                 raise robot.move_raises
+            if robot.move_result:
+                q = ik_nearest(pose6_to_matrix(pose) @ invert(robot.calibration), robot.q)
+                if q is not None:
+                    robot.q = q
             return robot.move_result
 
         def moveJ(self, q, speed, acceleration):
             robot.log.append(("moveJ", q, speed, acceleration))
+            if robot.move_blocks is not None:
+                robot.move_blocks.wait()
             if robot.move_result:
                 robot.q = np.array(q)
             return robot.move_result
+
+        def getForwardKinematics(self, q=(), tcp_offset=()):
+            robot.log.append(("getForwardKinematics", q, tcp_offset))
+            assert list(tcp_offset) == [0.0] * 6, "URArm works in flange poses"
+            return matrix_to_pose6(robot.world_from_flange(q if len(q) else robot.q)).tolist()
+
+        def getInverseKinematics(self, x, qnear=(), max_position_error=1e-10, max_orientation_error=1e-10):
+            robot.log.append(("getInverseKinematics", x, qnear))
+            q = ik_nearest(pose6_to_matrix(x) @ invert(robot.calibration), np.asarray(qnear, float))
+            if q is None:
+                raise RuntimeError("fake: no inverse kinematics solution")
+            return q.tolist()
 
     class Receive:
         def __init__(self, host):
@@ -98,7 +135,11 @@ def install_fake_rtde(monkeypatch, robot: FakeRobot, probe: bool = True) -> None
         def getActualTCPPose(self):
             if robot.log_reads:
                 robot.log.append(("getActualTCPPose",))
-            return matrix_to_pose6(fk(robot.q)).tolist()
+            return matrix_to_pose6(robot.world_from_flange(robot.q)).tolist()
+
+        def getDigitalInState(self, pin):
+            robot.log.append(("getDigitalInState", pin))
+            return robot.digital_in[pin]
 
         def getActualQ(self):
             return robot.q.tolist()
@@ -112,7 +153,12 @@ def install_fake_rtde(monkeypatch, robot: FakeRobot, probe: bool = True) -> None
         def __init__(self, host):
             robot.log.append(("RTDEIOInterface", host))
 
-        setStandardDigitalOut = record("setStandardDigitalOut")
+        def setStandardDigitalOut(self, pin, level):
+            robot.log.append(("setStandardDigitalOut", pin, level))
+            if robot.close_sets_input is not None and pin == 0:
+                robot.digital_in[robot.close_sets_input] = bool(level)
+            return True
+
         setToolDigitalOut = record("setToolDigitalOut")
         disconnect = record("io.disconnect")
 
@@ -122,8 +168,10 @@ def install_fake_rtde(monkeypatch, robot: FakeRobot, probe: bool = True) -> None
         module = types.ModuleType(name)
         setattr(module, attr, cls)
         monkeypatch.setitem(sys.modules, name, module)
-    if not probe:
-        from tapecell.cell import ur as cell_ur
+    from tapecell.cell import ur as cell_ur
+    from tapecell.cell.ur_link import ThreadLink
 
+    monkeypatch.setattr(cell_ur, "LINK_FACTORY", ThreadLink)
+    if not probe:
         # No socket to a real controller: the fake answers for it.
         monkeypatch.setattr(cell_ur, "probe_rtde", lambda *a, **k: None)

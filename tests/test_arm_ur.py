@@ -14,7 +14,8 @@ from tapecell.cell.arm import ArmError, ArmNotConnectedError, ProtectiveStopErro
 from tapecell.cell.kinematics import fk
 from tapecell.cell.poses import matrix_to_pose6
 from tapecell.cell.safety import SafetyError, SafetyLimits
-from tapecell.cell.ur import URArm, probe_rtde
+from tapecell.cell.config import GripperIOSection
+from tapecell.cell.ur import ArmConfigError, URArm, probe_rtde
 from fakes import FakeRobot, install_fake_rtde
 
 Q_START = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])   # flange near (-0.13, 0.34, 0.35)
@@ -84,7 +85,7 @@ def robot(monkeypatch):
 
 
 def make_arm(port: int, **kw) -> URArm:
-    kw.setdefault("gripper_settle_s", 0.0)
+    kw.setdefault("gripper", GripperIOSection(close_wait_s=0.0, open_wait_s=0.0))
     kw.setdefault("retry_delay_s", 0.0)
     return URArm("127.0.0.1", port, LIMITS, **kw)
 
@@ -179,8 +180,9 @@ def test_stop_l_in_finally_when_move_raises(robot, rtde_server):
     target = matrix_to_pose6(fk(Q_START)) + np.array([0.0, 0.0, 0.02, 0, 0, 0])
     arm = make_arm(rtde_server.port, stop_deceleration=3.0)
     arm.connect()
-    with pytest.raises(RuntimeError, match="dropped"):
+    with pytest.raises(ArmError, match="moveL to .* failed: fake: RTDE link dropped mid-move") as e:
         arm.move_linear(target, 0.1, 0.5)
+    assert e.value.exit_code == 3
     assert [c[0] for c in motion_calls(robot)][-2:] == ["moveL", "stopL"]
     assert robot.log[-1] == ("stopL", 3.0)
 
@@ -244,13 +246,36 @@ def test_controller_safety_refusal_sends_nothing(robot, rtde_server):
 
 # ---------------------------------------------------------------- gripper, freedrive, reconnect
 def test_gripper_through_configured_digital_output(robot, rtde_server):
-    with make_arm(rtde_server.port, gripper_output=3, gripper_close_level=False) as arm:
+    waits = []
+    g = GripperIOSection(close_output=3, active_high=False, close_wait_s=0.4, open_wait_s=0.3)
+    with make_arm(rtde_server.port, gripper=g, sleep=waits.append) as arm:
         arm.close_gripper()
         arm.open_gripper()
     io = [c for c in robot.log if c[0] == "setStandardDigitalOut"]
     assert io == [("setStandardDigitalOut", 3, False), ("setStandardDigitalOut", 3, True)]
-    with pytest.raises(ArmError, match="does not exist"):
-        make_arm(rtde_server.port, gripper_output=2, gripper_output_kind="tool")
+    assert waits == [0.4, 0.3]
+    with pytest.raises(ArmConfigError, match="does not exist"):
+        make_arm(rtde_server.port, gripper=GripperIOSection(output_kind="tool", close_output=2))
+
+
+def test_gripper_with_two_outputs_and_a_confirming_input(robot, rtde_server):
+    g = GripperIOSection(close_output=0, open_output=1, close_wait_s=0.0, open_wait_s=0.0, closed_input=5,
+                         closed_input_timeout_s=0.2)
+    robot.close_sets_input = 5       # the jaws' sensor follows output 0
+    with make_arm(rtde_server.port, gripper=g) as arm:
+        arm.close_gripper()
+        arm.open_gripper()
+    calls = [c for c in robot.log if c[0] in ("setStandardDigitalOut", "getDigitalInState")]
+    assert calls == [("setStandardDigitalOut", 1, False), ("setStandardDigitalOut", 0, True),
+                     ("getDigitalInState", 5),
+                     ("setStandardDigitalOut", 0, False), ("setStandardDigitalOut", 1, True),
+                     ("getDigitalInState", 5)]
+    robot.close_sets_input = None    # the sensor never reports closed: a jammed gripper
+    robot.digital_in[5] = False
+    with make_arm(rtde_server.port, gripper=g) as arm:
+        with pytest.raises(ArmError, match="did not confirm it closed.*input 5") as e:
+            arm.close_gripper()
+    assert e.value.exit_code == 3
 
 
 def test_freedrive_uses_teach_mode(robot, rtde_server):

@@ -12,7 +12,7 @@ from tapecell.cell.cross import CrossDetection
 from tapecell.estimator.capture import load_cameras
 from tapecell.estimator.geometry import Camera, rot_x, rot_z
 from fakes import FakeRobot, install_fake_rtde
-from tapecell.cell.config import load_cell_config
+from tapecell.cell.config import CellConfigError, load_cell_config
 
 K = np.array([[1371.0, 0, 319.5], [0, 1371.0, 239.5], [0, 0, 1]])
 
@@ -82,8 +82,9 @@ def test_plan_reaches_the_default_grid_and_faces_the_cameras():
 def test_unreachable_grid_is_an_error():
     cell = load_cell_config()
     far = dataclasses.replace(cell.calibration, grid_min=(1.2, 0.4, 0.1), grid_max=(1.3, 0.6, 0.2))
-    with pytest.raises(CalibrationError, match="unreachable"):
+    with pytest.raises(CellConfigError, match="unreachable") as e:   # the cell file's grid: bad input
         plan_poses(dataclasses.replace(cell, calibration=far), 2)
+    assert e.value.exit_code == 2
 
 
 def _dets(pix, ok):
@@ -178,7 +179,7 @@ def fake_ur(monkeypatch):
     return robot
 
 
-def test_real_calibrate_execute_moves_exactly_the_plan(tmp_path, fake_ur):
+def test_real_calibrate_execute_moves_exactly_the_plan(tmp_path, fake_ur, monkeypatch):
     """--execute with a faked controller and the pose images from a folder (rendered here
     at the planned poses, as a real camera would have taken them)."""
     import cv2
@@ -201,8 +202,16 @@ def test_real_calibrate_execute_moves_exactly_the_plan(tmp_path, fake_ur):
                 cv2.imwrite(str(images / f"{p.index:03d}" / f"{name}.png"), img[..., ::-1])
         truth = {c.name: c for c in sim.cameras()}
     out = tmp_path / "cams.json"
-    rc = main(["calibrate", "--config", cell.source, "--out", str(out), "--execute", "--images", str(images)])
-    assert rc == 0
+    argv = ["calibrate", "--config", cell.source, "--out", str(out), "--execute", "--images", str(images)]
+    # No terminal, no --yes: refused before any connection.
+    monkeypatch.setattr("sys.stdin.isatty", lambda: False)
+    assert main(argv) == 2 and fake_ur.log == [] and not out.exists()
+    # On a terminal: the confirmation comes before the first connection.
+    monkeypatch.setattr("sys.stdin.isatty", lambda: True)
+    asked = []
+    monkeypatch.setattr("builtins.input", lambda prompt="": asked.append(len(fake_ur.log)) or "yes")
+    rc = main(argv)
+    assert rc == 0 and asked == [0]
     moves = [c for c in fake_ur.log if c[0] == "moveJ"]
     assert len(moves) == len(poses) + 1           # the approach to the first pose, then every pose
     for call, p in zip(moves[1:], poses):

@@ -43,22 +43,27 @@ def capture_dir(tmp_path):
     return d
 
 
-def _run_real(monkeypatch, capture_dir, answers, execute=True):
-    it = iter(answers)
+def _run_real(monkeypatch, capture_dir, answers, execute=True, log=None):
+    """Run ``probe --execute`` on a terminal; the first answer confirms (given before any
+    connection: checked against ``log``), the others are the freedrive prompts."""
+    it = iter((["yes"] if execute else []) + list(answers))
 
     def fake_input(prompt=""):
+        if "Type 'yes'" in prompt:
+            assert "192.168.1.10:30004" in prompt and (log is None or log == [])
         a = next(it)
         if isinstance(a, BaseException):
             raise a
         return a
 
     monkeypatch.setattr("builtins.input", fake_input)
+    monkeypatch.setattr("sys.stdin.isatty", lambda: True)
     argv = ["probe", "--config", load_cell_config().source, "--capture", str(capture_dir)]
     return main(argv + (["--execute"] if execute else []))
 
 
 def test_real_probe_records_needle_tip_in_freedrive(monkeypatch, rtde_log, capture_dir):
-    assert _run_real(monkeypatch, capture_dir, ["", "", "s"]) == 0
+    assert _run_real(monkeypatch, capture_dir, ["", "", "s"], log=rtde_log) == 0
     names = [c[0] for c in rtde_log]
     assert names.index("teachMode") < names.index("getActualTCPPose") < names.index("endTeachMode")
     assert names.count("teachMode") == 1 and names.count("endTeachMode") == 1
@@ -98,3 +103,19 @@ def test_guided_probe_with_nothing_recorded_is_an_error():
             guided_probe(arm, [0, 0, 0.12, 0, 0, 0], PROBE_LABELS, prompt=lambda _: "q", log=lambda _: None)
         assert arm.freedrive_on is False
     assert [c for c in arm.calls if c[0] == "freedrive"] == [("freedrive", (True,)), ("freedrive", (False,))]
+
+
+def test_real_probe_without_a_terminal_connects_nothing(monkeypatch, rtde_log, capture_dir, capsys):
+    monkeypatch.setattr("sys.stdin.isatty", lambda: False)
+    code = main(["probe", "--config", load_cell_config().source, "--capture", str(capture_dir), "--execute"])
+    err = capsys.readouterr().err
+    assert code == 2 and rtde_log == []
+    assert "192.168.1.10:30004" in err and "freedrive" in err                 # what it would have done
+    assert err.strip().splitlines()[-1].startswith("tapecell: error: --execute asks for a typed confirmation")
+
+
+def test_real_probe_declined_connects_nothing(monkeypatch, rtde_log, capture_dir, capsys):
+    monkeypatch.setattr("sys.stdin.isatty", lambda: True)
+    monkeypatch.setattr("builtins.input", lambda prompt="": "no")
+    code = main(["probe", "--config", load_cell_config().source, "--capture", str(capture_dir), "--execute"])
+    assert code == 1 and rtde_log == [] and "cancelled" in capsys.readouterr().err

@@ -91,14 +91,22 @@ def test_execute_sends_exactly_the_plan_after_confirmation(real_like, monkeypatc
     robot = FakeRobot(q0)
     install_fake_rtde(monkeypatch, robot, probe=False)
     monkeypatch.setattr("sys.stdin.isatty", lambda: True)
-    monkeypatch.setattr("builtins.input", lambda prompt="": answer)
+    asked = []
+
+    def ask(prompt=""):
+        asked.append((prompt, len(robot.log)))
+        return answer
+    monkeypatch.setattr("builtins.input", ask)
     code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
                  "--execute"])
     out, err = capsys.readouterr()
     motions = [c for c in robot.log if c[0] in ("moveJ", "moveL", "setStandardDigitalOut")]
+    # Asked once, with the robot's address, before any connection was opened.
+    assert len(asked) == 1 and asked[0][1] == 0 and "192.168.1.10:30004" in asked[0][0]
+    assert "robot: UR arm at 192.168.1.10:30004" in err and "grasp plan" in out
     if answer == "no":
-        assert code == 1 and "cancelled; nothing moved" in out
-        assert motions == []
+        assert code == 1 and "cancelled; nothing connected, nothing moved" in err
+        assert robot.log == []
         return
     assert code == 0, err
     plan = _expected_plan(images, cameras, q0)
@@ -124,4 +132,79 @@ def test_execute_sends_exactly_the_plan_after_confirmation(real_like, monkeypatc
         if call[0] == "moveL":
             assert robot.log[i - 1][0] in ("speedStop", "servoStop", "isPoseWithinSafetyLimits")
     assert any(c[0] == "isPoseWithinSafetyLimits" for c in robot.log)
+    # The planner's kinematics were checked against the controller's before each motion:
+    # forward kinematics of each joint target, inverse kinematics of each linear target.
+    for i, call in enumerate(robot.log):
+        if call[0] == "moveJ":
+            fk_calls = [c for c in robot.log[:i] if c[0] == "getForwardKinematics"]
+            assert fk_calls and np.allclose(fk_calls[-1][1], call[1]) and fk_calls[-1][2] == [0.0] * 6
+        if call[0] == "moveL":
+            ik_calls = [c for c in robot.log[:i] if c[0] == "getInverseKinematics"]
+            assert ik_calls and np.allclose(ik_calls[-1][1], call[1])
     assert "grasp executed" in out
+
+
+def _fake_controller(monkeypatch, offset_m):
+    import numpy as np
+    from fakes import FakeRobot, install_fake_rtde
+
+    robot = FakeRobot(np.array(load_cell_config().arm.park_joints))
+    robot.calibration[:3, 3] = offset_m      # the calibrated arm puts the flange here off the nominal model
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    return robot
+
+
+def test_execute_plans_in_the_controllers_kinematics(real_like, monkeypatch, capsys):
+    """A real UR's calibration moves the tool 2-3 mm from the nominal model: the joint
+    targets come from the controller's inverse kinematics, so its flange reaches the plan."""
+    import numpy as np
+    from tapecell.cell.kinematics import fk
+    from tapecell.cell.poses import pose6_to_matrix
+
+    images, cameras = real_like
+    robot = _fake_controller(monkeypatch, [0.0025, -0.001, 0.0015])
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--yes"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    plan = _expected_plan(images, cameras, np.array(load_cell_config().arm.park_joints))
+    q_sent = next(c[1] for c in robot.log if c[0] == "moveJ")
+    target = pose6_to_matrix(plan.waypoint("pregrasp").flange_pose)
+    assert np.linalg.norm(robot.world_from_flange(q_sent)[:3, 3] - target[:3, 3]) < 1e-6
+    assert np.linalg.norm(fk(q_sent)[:3, 3] - target[:3, 3]) > 0.002     # not the nominal model's joints
+
+
+def test_execute_refuses_when_the_kinematics_disagree(real_like, monkeypatch, capsys):
+    images, cameras = real_like
+    robot = _fake_controller(monkeypatch, [0.02, 0.0, 0.0])
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--yes"])
+    out, err = capsys.readouterr()
+    lines = err.strip().splitlines()          # the address, the action, "confirmed by --yes", the error
+    assert code == 3 and len(lines) == 4 and lines[-1].startswith("tapecell: error: ")
+    assert "differ from the planner's UR5e model by 20.0 mm" in err and "nothing was sent" in err
+    assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
+    assert robot.log[-3:] == [("control.disconnect",), ("receive.disconnect",), ("io.disconnect",)]
+
+
+def test_refused_verdict_moves_nothing(real_like, monkeypatch, no_robot, capsys):
+    """An estimate a robot must not act on ends with exit 1 before any plan or connection
+    (the estimator's verdict is its own business: here it is forced to "ambiguous")."""
+    import dataclasses
+
+    import tapecell.estimator as estimator
+    from tapecell.estimator.result import Verdict
+
+    real_estimate = estimator.estimate
+
+    def ambiguous(*a, **k):
+        return dataclasses.replace(real_estimate(*a, **k), verdict=Verdict.AMBIGUOUS,
+                                   verdict_reason="a distinct shape explains the views as well")
+    monkeypatch.setattr(estimator, "estimate", ambiguous)
+    images, cameras = real_like
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--yes"])
+    out, err = capsys.readouterr()
+    assert code == 1 and err.count("\n") == 1
+    assert "verdict is ambiguous (a distinct shape explains the views as well): a robot must not act on it" in err
+    assert "grasp plan" not in out

@@ -1,14 +1,17 @@
 """``tapecell calibrate``: calibrate the cameras with the robot-held cross plate.
 
     tapecell calibrate --sim [--seed N] [--cameras 2|3] --out FILE [--rrd FILE]
-    tapecell calibrate --config CELL.toml --out FILE [--execute] [--rrd FILE]
+    tapecell calibrate --config CELL.toml --out FILE [--execute [--yes]] [--rrd FILE]
                        [--images DIR]
 
 On the simulated cell the arm carries the plate through the planned grid, the cameras
 render, and the result is compared with the simulator's true cameras. On the real cell
 the arm is a UR5e over ur_rtde (behind the safety checks) and images come from OpenCV
 ``VideoCapture`` (the cell file's ``robot.camera_devices``) or a folder; without
-``--execute`` the planned poses are printed and checked, and nothing moves.
+``--execute`` the planned poses are printed and checked, and nothing moves. With
+``--execute`` the robot's address and what will happen are shown and a typed 'yes' is
+asked for on the terminal before any connection is opened (``--yes`` answers for a
+script; with no terminal and no ``--yes`` nothing happens, exit 2).
 """
 from __future__ import annotations
 
@@ -18,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tapecell.cli.options import add_force, add_robot_options, add_seed, check_files, confirm_robot
 from tapecell.estimator.capture import save_cameras
-from tapecell.estimator.errors import TapecellError
 
 from tapecell.cell.calibration import (CalibrationResult, PlannedPose, camera_errors, plan_poses,
                            run_calibration)
@@ -31,13 +34,14 @@ def register(subparsers) -> None:
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--sim", action="store_true", help="calibrate the simulated cell")
     where.add_argument("--config", type=Path, metavar="CELL.toml", help="the real cell's file")
-    p.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    add_seed(p, "simulation seed, 0 or more (default 0)")
     p.add_argument("--cameras", type=int, choices=(2, 3), default=2, help="simulated cameras (default 2)")
     p.add_argument("--out", type=Path, required=True, help="tape-cameras/1 file to write")
     p.add_argument("--rrd", type=Path, help="write a rerun recording of every step")
-    p.add_argument("--execute", action="store_true", help="real cell: really move the arm")
+    add_robot_options(p, "move the arm through the planned poses")
     p.add_argument("--images", type=Path, metavar="DIR",
                    help="real cell: read pose images from DIR/<pose>/<camera>.png instead of cameras")
+    add_force(p)
     p.set_defaults(func=run)
 
 
@@ -121,7 +125,6 @@ def _check_points(cell):
 
 def calibrate_real(cell, args, rec=None, log=print) -> CalibrationResult:
     from tapecell.cell.cameras_real import FolderCameras, VideoCameras
-    from tapecell.cell.safety import SafetyLimits
     from tapecell.cell.ur import URArm
 
     n = len(cell.robot.camera_devices)
@@ -130,14 +133,19 @@ def calibrate_real(cell, args, rec=None, log=print) -> CalibrationResult:
         print_plan(cell, poses, log)
         return None
     names = [c.name for c in cell.cameras.camera[:len(poses[0].view_deg)]]
+    images = f"images from {args.images}" if args.images is not None else \
+        f"images from camera devices {list(cell.robot.camera_devices[:len(names)])}"
+    confirm_robot(cell.robot.host, cell.robot.port, [
+        f"move the arm (cross plate mounted) through {len(poses)} planned calibration poses at 0.3 rad/s, "
+        f"starting with a joint move to {np.round(poses[0].joints, 3).tolist()} rad",
+        f"take {images} at each pose and write {args.out}"], args.yes)
     if args.images is not None:
         source = FolderCameras(args.images, names)
     else:
         source = VideoCameras(cell.robot.camera_devices[:len(names)], names)
     try:
         # URArm checks every target against the limits itself, the plate's TCP included.
-        arm = URArm(cell.robot.host, cell.robot.port, SafetyLimits.from_config(cell.limits),
-                    flange_from_tool=cell.tools.plate.flange_from_tcp)
+        arm = URArm.from_config(cell, cell.tools.plate.flange_from_tcp)
         with arm:
             arm.move_joints(poses[0].joints, 0.3, 0.5)
             return run_calibration(cell, arm, source, poses, rec=rec, log=log, joint_speed=0.3, joint_accel=0.5)
@@ -152,6 +160,8 @@ def run(args) -> int:
     from tapecell.cell.recording import close_recording, discard_recording, open_recording
 
     cell = load_cell_config(None if args.sim else args.config)
+    if args.sim or args.execute:      # the files are checked before the arm moves, not after
+        check_files([args.out, args.rrd], args.force)
     rec = open_recording(args.rrd, "tapecell-calibrate") if args.rrd else None
     t0 = time.perf_counter()
     try:

@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+from tapecell.cli.options import MAX_SEED, add_force, add_seed, check_dir, check_files, positive_int
 from tapecell.estimator.errors import TapecellError
 
 EPISODE_HELP = """Run one simulated grasp episode: randomise the tape (seed), park the arm,
@@ -30,21 +31,23 @@ def _cameras(value: str) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("episode", help="one simulated grasp episode", description=EPISODE_HELP,
                        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seed", type=int, default=0, help="tape randomisation seed (default 0)")
+    add_seed(p, "tape randomisation seed, 0 or more (default 0)")
     p.add_argument("--cameras", type=_cameras, default=2, help="2 or 3 cameras (default 2)")
     p.add_argument("--rrd", type=Path, metavar="FILE", help="write a rerun recording of every step")
     p.add_argument("--config", type=Path, metavar="CELL.toml", help="cell file (default: the bundled one)")
+    add_force(p)
     p.set_defaults(func=run_one)
 
     p = sub.add_parser("episodes", help="many simulated grasp episodes, with a summary",
                        description=EPISODES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--n", type=int, required=True, help="number of episodes")
-    p.add_argument("--seed", type=int, default=0, help="first seed; episodes use seed .. seed+n-1")
-    p.add_argument("--jobs", type=int, default=1, help="parallel worker processes (default 1)")
+    p.add_argument("--n", type=positive_int, required=True, help="number of episodes")
+    add_seed(p, "first seed, 0 or more; episodes use seed .. seed+n-1")
+    p.add_argument("--jobs", type=positive_int, default=1, help="parallel worker processes (default 1)")
     p.add_argument("--cameras", type=_cameras, default=2, help="2 or 3 cameras (default 2)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="results folder")
     p.add_argument("--rrd-each", action="store_true", help="write DIR/episode-NNNN.rrd for every episode")
     p.add_argument("--config", type=Path, metavar="CELL.toml", help="cell file (default: the bundled one)")
+    add_force(p)
     p.set_defaults(func=run_many)
 
 
@@ -53,6 +56,7 @@ def run_one(args: argparse.Namespace) -> int:
     from tapecell.cell.config import load_cell_config
 
     load_cell_config(args.config)  # a bad cell file is one clear error before any work
+    check_files([args.rrd], args.force)
     doc = run_episode(args.seed, args.cameras, args.rrd, args.config)
     print(json.dumps(doc))
     if not doc["success"]:
@@ -66,9 +70,15 @@ def run_many(args: argparse.Namespace) -> int:
     from tapecell.sim.episodes import run_episodes, summarize
     from tapecell.cell.config import load_cell_config
 
-    if args.n < 1:
-        raise TapecellError(f"--n must be 1 or more, got {args.n}")
     load_cell_config(args.config)
+    if args.seed + args.n - 1 > MAX_SEED:
+        raise TapecellError(f"--seed {args.seed} --n {args.n}: the last seed would pass {MAX_SEED}")
+    # A results folder is resumed (its results.jsonl is appended to); any other non-empty
+    # folder is someone's files, kept unless --force (only results and recordings are written).
+    if not (args.out / "results.jsonl").is_file():
+        check_dir(args.out, args.force)
+    else:
+        check_dir(args.out, True)
     config = args.config.resolve() if args.config else None
     t0 = time.perf_counter()
     results = run_episodes(range(args.seed, args.seed + args.n), args.cameras, args.out, args.jobs,

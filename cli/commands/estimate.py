@@ -6,7 +6,8 @@ import sys
 from pathlib import Path
 
 from tapecell.estimator.capture import Capture, load_capture
-from tapecell.estimator.errors import TapecellError
+from tapecell.cli.options import add_force, check_files
+from tapecell.estimator.errors import OutputError, TapecellError
 from tapecell.estimator.io import atomic_write_json, to_json
 from tapecell.estimator.metrics import errors
 
@@ -16,7 +17,10 @@ One capture without --out prints the tape-estimate/1 JSON on stdout. With --out 
 capture's estimate is written to DIR/<capture folder name>.json and a summary line per
 capture goes to stderr (tip/node/normal errors where the capture holds truth.json).
 A capture that fails to load reports one error line; the others still run, and the exit
-status is 2 if any failed."""
+status is 2 if any failed. An estimate whose verdict is not "ok" (a robot must not act on
+it: ambiguous, hidden, poor_fit) is still written, its reason goes to stderr, and the exit
+status is 1. Existing estimate files are not replaced without --force, and two captures
+with the same folder name (a/cap, b/cap) are refused before any work."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -30,6 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--segment", action="append", default=[], metavar="KEY=VALUE",
                    help="segmentation parameter for captures holding colour images "
                         "(hue_min, hue_max, sat_min, val_min, open_px, close_px, min_area_px)")
+    add_force(p)
     p.set_defaults(func=run)
 
 
@@ -62,16 +67,22 @@ def run(args: argparse.Namespace) -> int:
 
     seg = _segmentation_overrides(args.segment)
     single = len(args.captures) == 1 and args.out is None
+    names = _names(args.captures)
+    if args.out is not None:
+        if args.out.exists() and not args.out.is_dir():
+            raise OutputError(f"{args.out}: exists and is a file; --out wants a folder")
+        check_files([args.out / f"{n}.json" for n in names], args.force)
+    check_files([args.rrd], args.force)
     stream = None
     if args.rrd is not None:
-        from tapecell.cell.recording import close_recording, fit_logger, log_fit_result, open_recording
+        from tapecell.cell.recording import (close_recording, discard_recording, fit_logger, log_fit_result,
+                                             open_recording)
         stream = open_recording(args.rrd, app_id="tapecell-estimate")
-    failed = 0
+    failed = refused = 0
     try:
         if not single:
             print(HEADER, file=sys.stderr)
-        for path in args.captures:
-            name = path.resolve().name
+        for path, name in zip(args.captures, names):
             try:
                 capture = load_capture(path, seg)
                 callback = None
@@ -95,10 +106,33 @@ def run(args: argparse.Namespace) -> int:
                 print(to_json(doc, indent=None))
             if not single:
                 print(summary_line(name, capture, est), file=sys.stderr)
-    finally:
+            if not est.actionable:
+                refused += 1
+                print(f"tapecell: {name}: verdict {est.verdict.value}"
+                      + (f" ({est.verdict_reason})" if est.verdict_reason else "")
+                      + "; a robot must not act on this estimate", file=sys.stderr)
+    except BaseException:
         if stream is not None:
-            close_recording(stream)
+            discard_recording(stream)   # a run that ends in an error leaves no file behind
+        raise
+    if stream is not None:
+        close_recording(stream)
     if failed:
         print(f"{failed} of {len(args.captures)} captures failed", file=sys.stderr)
         return 2
-    return 0
+    return 1 if refused else 0
+
+
+def _names(captures: list[Path]) -> list[str]:
+    """Each capture's folder name (its estimate file and recording prefix); two captures
+    with the same name would overwrite each other, so that is refused before any work."""
+    names: dict[str, Path] = {}
+    for path in captures:
+        name = path.resolve().name or str(path)
+        if name in names:
+            same = path.resolve() == names[name].resolve()
+            raise TapecellError(f"{names[name]} and {path} " + ("are the same capture" if same else
+                                f"have the same folder name '{name}'") + "; their estimates would "
+                                "overwrite each other (estimate them into different --out folders)")
+        names[name] = path
+    return list(names)

@@ -1,7 +1,7 @@
 """``tapecell probe``: measure the true tape with the needle on the arm (paper sec. 4.1).
 
     tapecell probe --sim [--seed N] [--cameras 2|3] [--out FILE]
-    tapecell probe --config CELL.toml --capture DIR [--out FILE] [--execute]
+    tapecell probe --config CELL.toml --capture DIR [--out FILE] [--execute [--yes]]
 
 Simulated: the cell captures and estimates the tape, then the needle approaches the
 tape's tip and tip corners slowly along the tape normal until MuJoCo reports contact;
@@ -9,7 +9,8 @@ the measured points are compared with the estimate (the paper's e, eq. 12) and w
 simulator's truth. Real: the arm goes into freedrive (teach mode); the operator guides
 the needle onto the tip (and corners) and presses Enter for each; the needle tip is saved
 as a tape-truth/1 fragment next to the capture. Teach mode always ends. Without
-``--execute`` nothing is connected.
+``--execute`` nothing is connected; with it, the robot's address and what will happen are
+shown and a typed 'yes' is asked for before any connection (``--yes`` for scripts).
 """
 from __future__ import annotations
 
@@ -18,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from tapecell.cli.options import add_force, add_robot_options, add_seed, check_files, confirm_robot
+from tapecell.estimator.errors import TapecellError
 from tapecell.estimator.io import atomic_write_json
 
 from tapecell.cell.probe import (PROBE_LABELS, ProbeError, ProbeParams, approach_normal, estimate_errors,
@@ -30,12 +33,13 @@ def register(subparsers) -> None:
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--sim", action="store_true", help="probe the simulated tape")
     where.add_argument("--config", type=Path, metavar="CELL.toml", help="the real cell's file")
-    p.add_argument("--seed", type=int, default=0)
+    add_seed(p, "simulation seed, 0 or more (default 0)")
     p.add_argument("--cameras", type=int, choices=(2, 3), default=2)
     p.add_argument("--capture", type=Path, metavar="DIR", help="real cell: the capture being probed")
     p.add_argument("--out", type=Path, help="where to write the tape-truth/1 fragment "
                                             "(real cell default: CAPTURE/probe.json)")
-    p.add_argument("--execute", action="store_true", help="real cell: connect and start freedrive")
+    add_robot_options(p, "start freedrive")
+    add_force(p)
     p.set_defaults(func=run)
 
 
@@ -81,20 +85,23 @@ def probe_sim(cell, seed: int, n_cameras: int, log=print) -> dict:
 
 
 def probe_real(cell, args, prompt=None, log=print) -> int:
-    from tapecell.cell.safety import SafetyLimits
     from tapecell.cell.ur import URArm
 
     if args.capture is None:
-        raise ProbeError("--capture DIR is needed on the real cell (the capture the probed points belong to)")
+        raise TapecellError("--capture DIR is needed on the real cell (the capture the probed points belong to)")
     if not args.capture.is_dir():
-        raise ProbeError(f"{args.capture}: capture directory not found")
+        raise TapecellError(f"{args.capture}: capture directory not found")
     out = args.out or args.capture / "probe.json"
     if not args.execute:
         log(f"would connect to {cell.robot.host}:{cell.robot.port}, start freedrive and record "
             f"{', '.join(PROBE_LABELS)} into {out}; nothing connected (add --execute)")
         return 0
-    arm = URArm(cell.robot.host, cell.robot.port, SafetyLimits.from_config(cell.limits),
-                flange_from_tool=cell.tools.needle.flange_from_tcp)
+    check_files([out], args.force)
+    confirm_robot(cell.robot.host, cell.robot.port, [
+        "start freedrive (teach mode): the arm's brakes release and it follows your hand; it makes no "
+        "motion of its own",
+        f"record the needle tip at {', '.join(PROBE_LABELS)} as you press Enter, into {out}"], args.yes)
+    arm = URArm.from_config(cell, cell.tools.needle.flange_from_tcp)
     with arm:
         points = guided_probe(arm, cell.tools.needle.flange_from_tcp, PROBE_LABELS, prompt, log)
     atomic_write_json(out, truth_fragment(points, str(args.capture)))
@@ -108,6 +115,7 @@ def run(args) -> int:
     cell = load_cell_config(None if args.sim else args.config)
     if not args.sim:
         return probe_real(cell, args)
+    check_files([args.out], args.force)
     result = probe_sim(cell, args.seed, args.cameras)
     if args.out is not None:
         atomic_write_json(args.out, truth_fragment(result["points"]))

@@ -7,18 +7,30 @@ import sys
 import time
 from pathlib import Path
 
-from tapecell.estimator.errors import TapecellError
+import numpy as np
+
+from tapecell.cli.options import add_force, add_robot_options, check_dir, check_files, confirm_robot
+from tapecell.estimator.errors import TapecellError, TaskFailed
 
 HELP = """Run the real cell once: grab one image per camera (OpenCV VideoCapture devices from
 the cell file's [robot] camera_devices, or --images DIR holding DIR/000/<camera>.png),
 segment the tape, estimate it with the calibrated cameras (--cameras FILE, tape-cameras/1
-from `tapecell calibrate`), plan a grasp at its tip and print the plan.
+from `tapecell calibrate`), plan a grasp at its tip and print the plan. An estimate whose
+verdict is not "ok" is refused (exit 1): a robot must not act on it.
 
-Nothing moves without --execute. With --execute the arm (ur_rtde, [robot] host) is
-connected, the plan is made from its actual joints, shown, and run only after you type
-'yes' on the terminal. Every target is checked against the cell file's workspace box,
+Nothing moves without --execute. With --execute the robot's address and the plan are
+shown and you type 'yes' on the terminal BEFORE any connection is opened (--yes answers
+for a script; with no terminal and no --yes nothing happens, exit 2). Then the arm is
+connected, its kinematics are checked against the planner's, the plan is made again in
+the controller's own kinematics from the arm's actual joints, and run only if it is the
+plan you confirmed. Every target is checked against the cell file's workspace box,
 keep-out zone and speed limits, and against the controller's safety limits, before it is
-sent; the arm is stopped on any error."""
+sent; every robot call has a deadline; the arm is stopped on any error."""
+
+SAME_PLAN_M = 0.001
+"""The plan made after connecting must put every TCP waypoint within this [m] (and
+SAME_PLAN_RAD) of the plan that was confirmed."""
+SAME_PLAN_RAD = 0.0175
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -28,32 +40,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cameras", type=Path, required=True, metavar="FILE",
                    help="calibrated cameras (tape-cameras/1)")
     p.add_argument("--images", type=Path, metavar="DIR", help="read images from DIR instead of the cameras")
-    p.add_argument("--execute", action="store_true", help="really move the arm (asks for confirmation)")
+    add_robot_options(p, "run the grasp plan on the arm")
     p.add_argument("--rrd", type=Path, metavar="FILE", help="write a rerun recording of every step")
     p.add_argument("--save-capture", type=Path, metavar="DIR",
                    help="keep what the cameras saw as a tape-capture/1 directory (replay with tapecell estimate)")
+    add_force(p)
     p.set_defaults(func=run)
 
 
-def confirm(prompt: str = "Execute this plan on the real arm? Type 'yes': ") -> bool:
-    """Ask on the terminal (``run`` has checked that there is one)."""
-    try:
-        return input(prompt).strip().lower() == "yes"
-    except EOFError:
-        return False
-
-
-def grab_capture(cfg, cameras, images: Path | None):
-    """One image per camera, segmented into a capture of the cell's tape model."""
-    import numpy as np
-
+def grab_capture(cfg, cameras, images: Path | None, cameras_file: str = "cameras"):
+    """One image per camera, segmented into a capture of the cell's tape model, with the
+    checks ``load_capture`` makes (an inverted mask, a camera that cannot see the tape)."""
     from tapecell.estimator.capture import Capture, View
     from tapecell.estimator.errors import CaptureError
+    from tapecell.estimator.sanity import check_mask_coverage, check_view_geometry
     from tapecell.estimator.segment import segment_tape
     from tapecell.cell.config import tape_spec
 
     from tapecell.cell.cameras_real import FolderCameras, VideoCameras
 
+    tape = tape_spec(cfg, cfg.tape.estimator_plates)
     names = [c.name for c in cameras]
     if images is not None:
         source = FolderCameras(images, names)
@@ -72,8 +78,10 @@ def grab_capture(cfg, cameras, images: Path | None):
         mask = segment_tape(img)
         if not np.any(mask):
             raise CaptureError(f"camera {cam.name} sees no tape")
+        check_mask_coverage(mask, cam.name, f"the segmented image of camera {cam.name}")
+        check_view_geometry(cam, tape, mask, cameras_file)
         views.append(View(cam, mask, None, img))
-    return Capture(tape_spec(cfg, cfg.tape.estimator_plates), views)
+    return Capture(tape, views)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -87,43 +95,56 @@ def run(args: argparse.Namespace) -> int:
 
     cfg = load_cell_config(args.config)
     cameras = load_cameras(args.cameras)
-    if args.execute and not sys.stdin.isatty():
-        raise TapecellError("--execute asks for confirmation on a terminal, and standard input is not one; "
-                            "nothing moved")
+    if args.execute and not args.yes and not sys.stdin.isatty():
+        raise TapecellError("--execute asks for a typed confirmation on a terminal and standard input is not "
+                            "one; nothing connected, nothing moved (add --yes to confirm in a script)")
+    check_files([args.rrd], args.force)
+    check_dir(args.save_capture, args.force)
     limits = SafetyLimits.from_config(cfg.limits)
     stream = rec.open_recording(args.rrd, "tapecell-run", [c.name for c in cameras]) if args.rrd else None
     try:
-        capture = grab_capture(cfg, cameras, args.images)
+        capture = grab_capture(cfg, cameras, args.images, str(args.cameras))
         if args.save_capture is not None:
-            save_capture(capture, args.save_capture, rgb=True)
+            save_capture(capture, args.save_capture, rgb=True, force=args.force)
             print(f"saved the capture to {args.save_capture}", file=sys.stderr)
         est = estimate(capture, callback=rec.fit_logger(stream, capture) if stream else None)
         if stream is not None:
             rec.log_fit_result(stream, capture, est)
         tip_mm = ", ".join(f"{v * 1e3:.1f}" for v in est.tip_position)
-        print(f"estimate: tip [{tip_mm}] mm, cost {est.cost:.4f}, {est.time_s * 1e3:.1f} ms")
+        print(f"estimate: tip [{tip_mm}] mm, cost {est.cost:.4f}, verdict {est.verdict.value}, "
+              f"{est.time_s * 1e3:.1f} ms")
+        if not est.actionable:
+            raise TaskFailed(f"the estimate's verdict is {est.verdict.value}"
+                             + (f" ({est.verdict_reason})" if est.verdict_reason else "")
+                             + ": a robot must not act on it; nothing moved")
 
-        def make_plan(q_start):
-            plan = plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),
+        def make_plan(q_start, ik=None):
+            kw = {} if ik is None else {"ik": ik}
+            return plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),
                               GripperGeometry.from_config(cfg.tools.gripper), limits,
-                              q_start=q_start, tape_points=est.nodes)
-            if stream is not None:
-                rec.log_plan(stream, plan.tool_waypoints())
-            print(plan.describe())
-            return plan
+                              q_start=q_start, tape_points=est.nodes, **kw)
 
+        shown = make_plan(None)
+        print(shown.describe())
+        if stream is not None:
+            rec.log_plan(stream, shown.tool_waypoints())
         if not args.execute:
-            make_plan(None)
             print("nothing moved (add --execute to run the plan on the arm)")
+            _close(rec, stream)
+            stream = None
             return 0
-        from tapecell.cell.ur import URArm
-        arm = URArm(cfg.robot.host, cfg.robot.port, limits, flange_from_tool=cfg.tools.gripper.flange_from_tcp)
+        speeds = Speeds()
+        confirm_robot(cfg.robot.host, cfg.robot.port, [
+            f"run the grasp plan above ({len(shown.steps)} steps: joint moves at {speeds.joint:g} rad/s, the "
+            f"approach at {speeds.approach:g} m/s, the lift at {speeds.lift:g} m/s), after checking it again "
+            "from the arm's actual joints in the controller's kinematics"], args.yes)
         from tapecell.cell.poses import pose6_to_matrix
+        from tapecell.cell.ur import URArm
+
+        arm = URArm.from_config(cfg, cfg.tools.gripper.flange_from_tcp)
         with arm:
-            plan = make_plan(arm.joints())
-            if not confirm():
-                print("cancelled; nothing moved")
-                return 1
+            plan = make_plan(arm.joints(), ik=arm.ik)     # the controller's kinematics, from where it is
+            _check_same_plan(shown, plan)
 
             def on_step(step, a):
                 print(f"done: {step.action} {step.waypoint or ''}".rstrip())
@@ -131,9 +152,33 @@ def run(args: argparse.Namespace) -> int:
                     rec.log_arm_state(stream, time.perf_counter() - t_start, pose6_to_matrix(a.tcp_pose()), a.joints())
 
             t_start = time.perf_counter()
-            execute_plan(plan, arm, limits, Speeds(), on_step=on_step)
+            execute_plan(plan, arm, limits, speeds, on_step=on_step)
         print("grasp executed")
-        return 0
-    finally:
+    except BaseException:
         if stream is not None:
-            rec.close_recording(stream)
+            rec.discard_recording(stream)   # a run that ends in an error leaves no file behind
+        raise
+    _close(rec, stream)
+    return 0
+
+
+def _close(rec, stream) -> None:
+    if stream is not None:
+        rec.close_recording(stream)
+
+
+def _check_same_plan(shown, plan) -> None:
+    """Refuse to run a plan other than the one the operator confirmed."""
+    from tapecell.cell.poses import rotation_angle_between
+
+    steps = [(s.action, s.waypoint) for s in shown.steps]
+    if steps != [(s.action, s.waypoint) for s in plan.steps]:
+        raise TaskFailed("the plan made from the arm's actual joints has other steps than the one you confirmed; "
+                         "nothing moved (run again to see and confirm the new plan)")
+    for a, b in zip(shown.waypoints, plan.waypoints):
+        dp = float(np.linalg.norm(a.world_from_tcp[:3, 3] - b.world_from_tcp[:3, 3]))
+        dr = rotation_angle_between(a.world_from_tcp[:3, :3], b.world_from_tcp[:3, :3])
+        if dp > SAME_PLAN_M or dr > SAME_PLAN_RAD:
+            raise TaskFailed(f"the plan made from the arm's actual joints puts the gripper {dp * 1e3:.1f} mm and "
+                             f"{np.degrees(dr):.1f} deg away from the confirmed plan at '{a.name}'; nothing moved "
+                             "(run again to see and confirm the new plan)")

@@ -5,6 +5,7 @@ import argparse
 import os
 from pathlib import Path
 
+from tapecell.cli.options import add_force, add_seed, check_dir, check_files
 from tapecell.estimator.errors import TapecellError
 
 
@@ -16,22 +17,27 @@ def register(subparsers) -> None:
         q.add_argument("--config", type=Path, default=None, help="cell file (default: the bundled assets/cell.toml)")
         q.add_argument("--cameras", type=int, choices=(2, 3), default=2, help="number of cameras (default 2)")
         if seed:
-            q.add_argument("--seed", type=int, default=0, help="tape shape seed (default 0)")
+            add_seed(q, "tape shape seed, 0 or more (default 0)")
 
     q = sub.add_parser("capture", help="write a tape-capture/1 directory with truth.json")
     common(q)
     q.add_argument("--rgb", action="store_true", help="also write the rendered colour images")
-    q.add_argument("--out", type=Path, required=True, help="capture directory to write")
+    q.add_argument("--out", type=Path, required=True,
+                   help="capture directory to write (a new or empty folder, or add --force)")
+    add_force(q)
     q.set_defaults(func=run_capture)
 
     q = sub.add_parser("cameras", help="write the true cameras as tape-cameras/1")
     common(q, seed=False)
     q.add_argument("--out", type=Path, required=True, help="cameras JSON file to write")
+    add_force(q)
     q.set_defaults(func=run_cameras)
 
     q = sub.add_parser("snapshot", help="save a PNG from every camera and an overview camera")
     common(q)
-    q.add_argument("--out", type=Path, required=True, help="directory for the PNGs")
+    q.add_argument("--out", type=Path, required=True,
+                   help="directory for the PNGs (a new or empty folder, or add --force)")
+    add_force(q)
     q.set_defaults(func=run_snapshot)
 
     q = sub.add_parser("view", help="open MuJoCo's interactive viewer (needs a display)")
@@ -49,9 +55,10 @@ def _cell(args):
 def run_capture(args) -> int:
     from tapecell.estimator.capture import save_capture
 
+    check_dir(args.out, args.force)
     with _cell(args) as cell:
         cap = cell.capture(rgb=args.rgb)
-        save_capture(cap, args.out, rgb=args.rgb)
+        save_capture(cap, args.out, rgb=args.rgb, force=args.force)
         t = cell.timing
         print(f"wrote {args.out}: seed {cell.seed} ({cell.rest.case}), {len(cap.views)} cameras, "
               f"tip at {[round(float(v), 4) for v in cap.truth.points[-1]]} m; "
@@ -62,6 +69,7 @@ def run_capture(args) -> int:
 def run_cameras(args) -> int:
     from tapecell.estimator.capture import save_cameras
 
+    check_files([args.out], args.force)
     with _cell(args) as cell:
         save_cameras(cell.cameras(), args.out)
         print(f"wrote {args.out}: {', '.join(cell.camera_names)}")
@@ -71,17 +79,16 @@ def run_cameras(args) -> int:
 def run_snapshot(args) -> int:
     import cv2
 
-    from tapecell.estimator.io import atomic_write_bytes
+    from tapecell.estimator.io import atomic_dir
 
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise TapecellError(f"{out}: exists and is not a directory")
+    check_dir(out, args.force)
     with _cell(args) as cell:
         names = cell.camera_names + ["overview"]
-        out.mkdir(parents=True, exist_ok=True)
-        for n in names:
-            _, buf = cv2.imencode(".png", cv2.cvtColor(cell.render_rgb(n), cv2.COLOR_RGB2BGR))
-            atomic_write_bytes(out / f"{n}.png", buf.tobytes())
+        with atomic_dir(out, args.force) as tmp:
+            for n in names:
+                _, buf = cv2.imencode(".png", cv2.cvtColor(cell.render_rgb(n), cv2.COLOR_RGB2BGR))
+                (tmp / f"{n}.png").write_bytes(buf.tobytes())
         print(f"wrote {', '.join(f'{n}.png' for n in names)} to {out} (seed {cell.seed}, {cell.rest.case})")
     return 0
 
