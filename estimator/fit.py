@@ -1036,6 +1036,16 @@ def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_
     return refined[best], sub_traces[best], float(costs[best])
 
 
+def _mirrors(angles: np.ndarray) -> np.ndarray:
+    """(2, n, 3): ``angles`` with every out-of-plane bend mirrored (θy -> -θy), and with the
+    twist mirrored as well (the same silhouette seen from a camera facing the tape)."""
+    a, b = angles.copy(), angles.copy()
+    a[:, 1] *= -1
+    b[:, 1] *= -1
+    b[:, 0] *= -1
+    return np.array([a, b])
+
+
 def _variants(angles: np.ndarray) -> np.ndarray:
     """Chains near ``angles`` (n, 3) on other branches: from each joint on, the bend
     mirrored (θy -> -θy) or the twist turned by ±π/2 or flipped in sign — the ambiguities
@@ -1070,6 +1080,11 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     starts = np.array(_beam_search(capture.tape, fields))
     pool: list = []
     angles, trace, cost = _refine(chain, fields, starts, silhouette_costs, pool)
+    # The classic silhouette ambiguity, a bend towards or away from the cameras: the
+    # winner's mirror images are refined too, as hypotheses (and the winner if better).
+    a2, t2, c2 = _refine(chain, fields, _mirrors(angles), silhouette_costs, pool)
+    if c2 < cost:
+        angles, trace, cost = a2, t2, c2
     worst_px = max(c * f.target.area / f.outline_px for c, f in zip(evaluator.view_costs(chain.quads(angles)[0]), fields))
     if cost > WIDE_COST or worst_px > WIDE_OFFSET_PX:
         # A poor fit: only these pay for a wider search (a finer, larger beam and the

@@ -13,6 +13,8 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   its tip corners are projected into each view; a view sees the free end when at least
   ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore mask and
   in front of every scene box. Fewer than two such views: ``hidden``.
+- Can the end's depth be told? The cameras that see it must look at it from directions at
+  least ``MIN_PARALLAX_DEG`` apart, else ``ambiguous``.
 - Does a distinct shape explain the views nearly as well? An alternative whose tip is more
   than ``DISTINCT_TIP_M`` from the estimate's, refined like the winner, whose silhouette
   cost (eq. 11) is at most ``AMBIGUOUS_RATIO`` times the winner's (plus
@@ -47,6 +49,10 @@ TIP_SPAN_M = 0.005
 """Length of the free end [m] whose visibility decides whether a camera sees it."""
 TIP_SEEN_FRACTION = 0.5
 """Fraction of the free end's points a camera must see to count as seeing it."""
+MIN_PARALLAX_DEG = 10.0
+"""The cameras that see the free end must look at it from directions at least this far apart
+[deg] (the cell's are ~35 deg apart): from nearly one direction its depth is undetermined,
+and shapes whose tips lie anywhere along it explain the views alike (``ambiguous``)."""
 DISTINCT_TIP_M = 0.010
 """Tips further apart than this [m] make two shapes distinct hypotheses (formats.md)."""
 AMBIGUOUS_RATIO = 1.25
@@ -178,6 +184,11 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(seen), best_cost, tip_position, alternatives)
+    parallax = _parallax_deg([v.camera.center for v, s_ in zip(views, seen) if s_], tip_position)
+    if verdict is Verdict.OK and parallax < MIN_PARALLAX_DEG:
+        verdict, reason = Verdict.AMBIGUOUS, (f"the cameras that see the free end look at it from directions "
+                                              f"{parallax:.1f} deg apart (< {MIN_PARALLAX_DEG:g}): its depth is "
+                                              f"undetermined")
     bad_end = [k for k in range(len(views)) if seen[k] and ends[k] > END_OFFSET_PX]
     if verdict is not Verdict.POOR_FIT and bad_end:
         k = bad_end[0]
@@ -189,6 +200,16 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
 def is_close_alternative(cost: float, best_cost: float) -> bool:
     """Does a hypothesis of eq.-11 ``cost`` explain the views nearly as well as the best?"""
     return cost <= AMBIGUOUS_RATIO * best_cost + AMBIGUOUS_ABS
+
+
+def _parallax_deg(centers: Sequence[np.ndarray], point: np.ndarray) -> float:
+    """The widest angle [deg] between two of the rays from ``centers`` to ``point``."""
+    rays = [(c - point) / np.linalg.norm(c - point) for c in centers]
+    best = 0.0
+    for i in range(len(rays)):
+        for j in range(i + 1, len(rays)):
+            best = max(best, float(np.degrees(np.arccos(np.clip(rays[i] @ rays[j], -1.0, 1.0)))))
+    return best
 
 
 def judge(offsets_px: np.ndarray, tip_views: int, best_cost: float, best_tip: np.ndarray,
