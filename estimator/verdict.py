@@ -36,7 +36,7 @@ from .occlusion import hidden
 from .result import Verdict
 from .scene import Box
 
-POOR_OFFSET_PX = 4.0
+POOR_OFFSET_PX = 3.0
 """Mean boundary distance [px] in a view above which the fit does not explain it."""
 END_OFFSET_PX = 2.0
 """Mean boundary distance [px] around the tip's projection above which a view that sees the

@@ -87,11 +87,15 @@ def synthetic_captures(kind: str, seed0: int, n: int):
 def sim_captures(tape: str, seed0: int, n: int):
     from tapecell.cell.config import load_cell_config
     from tapecell.sim.cell import SimCell
+    from tapecell.sim.shell import make_capture as shell_capture
 
     cfg = load_cell_config()
     for cams in (2, 3):
-        kwargs = {"tape": tape} if tape != "chain" else {}
-        with SimCell(cfg, seed0, n_cameras=cams, **kwargs) as cell:
+        if tape == "shell":
+            for seed in range(seed0, seed0 + n):
+                yield f"shell-c{cams}-{seed}", shell_capture(cfg, seed, cams)
+            continue
+        with SimCell(cfg, seed0, n_cameras=cams) as cell:
             for seed in range(seed0, seed0 + n):
                 cell.reset(seed)
                 yield f"{tape}-c{cams}-{seed}", cell.capture()

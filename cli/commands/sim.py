@@ -21,7 +21,10 @@ def register(subparsers) -> None:
 
     q = sub.add_parser("capture", help="write a tape-capture/1 directory with truth.json")
     common(q)
-    q.add_argument("--rgb", action="store_true", help="also write the rendered colour images")
+    q.add_argument("--tape", choices=("plates", "shell"), default="plates",
+                   help="plates: the chain of flexible plates (default); shell: a MuJoCo flexible shell, "
+                        "a tape that is not the estimator's model (masks only, no arm)")
+    q.add_argument("--rgb", action="store_true", help="also write the rendered colour images (plate tape)")
     q.add_argument("--out", type=Path, required=True,
                    help="capture directory to write (a new or empty folder, or add --force)")
     add_force(q)
@@ -56,6 +59,19 @@ def run_capture(args) -> int:
     from tapecell.estimator.capture import save_capture
 
     check_dir(args.out, args.force)
+    if args.tape == "shell":
+        from tapecell.cell.config import load_cell_config
+        from tapecell.sim.shell import ShellCell
+
+        if args.rgb:
+            raise TapecellError("--rgb: the shell tape's captures hold masks only")
+        with ShellCell(load_cell_config(args.config), args.seed, args.cameras) as cell:
+            cap = cell.capture()
+            save_capture(cap, args.out, force=args.force)
+            print(f"wrote {args.out}: shell tape, seed {args.seed} ({cell.draw.case}, Young's modulus "
+                  f"{cell.young / 1e9:.2f} GPa), {len(cap.views)} cameras, tip at "
+                  f"{[round(float(v), 4) for v in cap.truth.points[-1]]} m; settle {cell.settle_s * 1000:.0f} ms")
+        return 0
     with _cell(args) as cell:
         cap = cell.capture(rgb=args.rgb)
         save_capture(cap, args.out, rgb=args.rgb, force=args.force)
