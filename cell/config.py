@@ -263,10 +263,9 @@ class RobotSection:
 
 @dataclass(frozen=True)
 class GraspSection:
-    """Grasp planning: reject estimates with cost above cost_threshold; grasp inset [m]
-    from the tip; approach from pregrasp_distance [m]; lift [m] along lift_mode's path
-    ("arc" or "peel", see ``cell.planner``)."""
-    cost_threshold: float
+    """Grasp planning (only on estimates whose verdict is "ok"): grasp inset [m] from the
+    tip; approach from pregrasp_distance [m]; lift [m] along lift_mode's path ("arc" or
+    "peel", see ``cell.planner``)."""
     inset: float
     pregrasp_distance: float
     lift: float

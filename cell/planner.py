@@ -81,11 +81,14 @@ class PlanRefused(TaskFailed):
 class TipFrame:
     """The estimated tape tip. position (3,) [m] world; rotation (3, 3) world_from_tip with
     columns trunk (outward along the tape), left (across the width), normal; cost: the
-    estimate's silhouette cost."""
+    estimate's silhouette cost; verdict: the estimator's ("ok" is the only one a grasp is
+    planned for); reason: its one-line why."""
 
     position: np.ndarray
     rotation: np.ndarray
     cost: float
+    verdict: str = "ok"
+    reason: str = ""
 
     @property
     def trunk(self) -> np.ndarray:
@@ -97,17 +100,17 @@ class TipFrame:
 
     @classmethod
     def from_estimate(cls, estimate: Any) -> "TipFrame":
-        """From an ``estimator.Estimate`` (its tip frame and cost)."""
+        """From an ``estimator.Estimate`` (its tip frame, cost and verdict)."""
+        verdict = getattr(estimate, "verdict", "ok")
         return cls(np.asarray(estimate.tip_position, float), np.asarray(estimate.tip_rotation, float),
-                   float(estimate.cost))
+                   float(estimate.cost), str(getattr(verdict, "value", verdict)), getattr(estimate, "verdict_reason", ""))
 
 
 @dataclass(frozen=True)
 class GraspParams:
-    """cost_threshold: refuse estimates above it; inset [m]: TCP this far in from the tip;
-    pregrasp_distance [m]: start of the approach, back along it; lift [m]: length of the peel."""
+    """inset [m]: TCP this far in from the tip; pregrasp_distance [m]: start of the
+    approach, back along it; lift [m]: length of the peel."""
 
-    cost_threshold: float
     inset: float
     pregrasp_distance: float
     lift: float
@@ -121,7 +124,7 @@ class GraspParams:
     def from_config(cls, section: Any) -> "GraspParams":
         """From the cell file's ``[grasp]`` section (``sim.config.GraspSection``); its
         optional ``lift_mode`` ("arc" or "peel") defaults to "arc"."""
-        return cls(float(section.cost_threshold), float(section.inset), float(section.pregrasp_distance),
+        return cls(float(section.inset), float(section.pregrasp_distance),
                    float(section.lift), str(getattr(section, "lift_mode", "arc")))
 
 
@@ -250,9 +253,9 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     (e.g. ``Estimate.nodes``), checked against the open fingers. tape_base (3,): where the
     tape is stuck on the part (default ``tape_points[0]``), for the peel direction.
     """
-    if not np.isfinite(tip.cost) or tip.cost > params.cost_threshold:
-        raise PlanRefused("estimate rejected", f"fit cost {tip.cost:.4g} is above the threshold "
-                                               f"{params.cost_threshold:.4g}")
+    if tip.verdict != "ok":
+        # A robot acts only on an estimate the estimator vouches for (estimator/verdict.py).
+        raise PlanRefused("estimate rejected", f"verdict {tip.verdict}: {tip.reason}")
     R_tip = np.asarray(tip.rotation, float)
     if not is_rotation(R_tip, tol=1e-4):
         raise PlanRefused("estimate rejected", "the tip rotation is not a rotation matrix")

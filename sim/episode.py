@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.estimator import estimate
+from tapecell.estimator import Verdict, estimate
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
 from tapecell.estimator.metrics import errors
@@ -64,7 +64,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     cfg = load_cell_config(config)
     times: dict[str, float] = {}
     doc: dict[str, Any] = {"format": "tape-episode/1", "seed": int(seed), "cameras": int(cameras),
-                           "success": False, "failure": None, "tip_error_mm": None, "normal_error_deg": None}
+                           "success": False, "outcome": "refused", "verdict": None, "failure": None,
+                           "tip_error_mm": None, "normal_error_deg": None}
     stream = cell = None
     if recording is not None:
         from tapecell.cell import recording as rec
@@ -84,7 +85,22 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         callback = rec.fit_logger(stream, capture) if stream is not None else None
         est = estimate(capture, callback=callback)
         times["estimate"] = est.time_s
-        err = errors(est.nodes, est.tip_rotation, capture.truth)
+        if est.verdict is Verdict.HIDDEN and any(v.ignore is not None and v.ignore.any() for v in capture.views):
+            # The arm hides the tape's end: park it out of every view and look again.
+            t1 = time.perf_counter()
+            sim_arm.park()
+            capture = cell.capture(rgb=stream is not None)
+            if cfg.episode.cameras_file:
+                capture = with_cameras(capture, _resolve(cfg, cfg.episode.cameras_file))
+            times["capture"] += time.perf_counter() - t1
+            est = estimate(capture, callback=callback)
+            times["estimate"] += est.time_s
+            doc["recaptured"] = True
+        doc["verdict"] = est.verdict.value
+        doc["tip_views"] = int(est.tip_views)
+        if est.verdict_reason:
+            doc["verdict_reason"] = est.verdict_reason
+        err = errors(est.nodes, est.tip_rotation, capture.truth, est.tip_position)
         doc["tip_error_mm"] = round(err.tip_m * 1e3, 3)
         doc["normal_error_deg"] = round(err.normal_deg, 3)
         doc["cost"] = round(float(est.cost), 5)
@@ -109,7 +125,10 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         t0 = time.perf_counter()
         outcome = _execute_and_check(cell, sim_arm, plan, limits, stream)
         times["execute"] = time.perf_counter() - t0
-        doc.update(success=outcome.success, failure=outcome.failure)
+        # "limits": the safety check refused the plan before the arm moved; anything else
+        # after execution began acted on the tape.
+        doc.update(success=outcome.success, failure=outcome.failure,
+                   outcome="grasped" if outcome.success else "refused" if outcome.failure == "limits" else "failed")
         doc["pad_contacts"] = outcome.pad_contacts
         doc["lift_mm"] = round(outcome.lift_m * 1e3, 2)
         if outcome.tip_follow_error_m is not None:

@@ -39,17 +39,27 @@ def test_one_episode_grasps_the_tape_and_records_every_step(tmp_path, capsys):
     assert "world/arm/links" in rows
 
 
-def test_refused_estimate_is_a_failure_reason(tmp_path, capsys):
-    import re
-    text, n = re.subn(r"(?m)^cost_threshold = [0-9.]+", "cost_threshold = 0.0", default_cell_path().read_text())
-    assert n == 1
-    cfg = tmp_path / "strict.toml"
-    cfg.write_text(text)
-    code = main(["episode", "--seed", "2", "--config", str(cfg)])
+def test_estimate_that_is_not_ok_is_refused_untouched(monkeypatch, capsys):
+    """A robot acts only on "ok": an estimate the estimator calls hidden (with the arm out
+    of every view, re-capturing cannot help) is refused, the arm never moves to the tape,
+    and the episode says so apart from failures."""
+    import dataclasses
+
+    from tapecell.estimator import Verdict
+    from tapecell.sim import episode
+
+    real = episode.estimate
+
+    def unsure(capture, **kw):
+        return dataclasses.replace(real(capture, **kw), verdict=Verdict.AMBIGUOUS, verdict_reason="made up")
+
+    monkeypatch.setattr(episode, "estimate", unsure)
+    code = main(["episode", "--seed", "2"])
     out, err = capsys.readouterr()
     doc = json.loads(out)
     assert code == 1
-    assert doc["success"] is False and doc["failure"] == "estimate rejected"
+    assert doc["success"] is False and doc["outcome"] == "refused" and doc["verdict"] == "ambiguous"
+    assert doc["failure"] == "estimate rejected"
     assert "execute" not in doc["time_s"]
     assert "estimate rejected" in err
 

@@ -16,7 +16,7 @@ from tapecell.estimator.tape import TapeSpec, forward_kinematics
 LIMITS = SafetyLimits(workspace_min=[-0.30, 0.10, 0.05], workspace_max=[0.60, 0.90, 0.70],
                       max_tcp_speed=0.25, max_tcp_accel=1.2, max_joint_speed=1.0,
                       keepout_min=[-0.07, 0.44, 0.0], keepout_max=[0.07, 0.56, 0.095])
-PARAMS = GraspParams(cost_threshold=0.15, inset=0.008, pregrasp_distance=0.05, lift=0.05)
+PARAMS = GraspParams(inset=0.008, pregrasp_distance=0.05, lift=0.05)
 GRIPPER = GripperGeometry(pose6_to_matrix([0, 0, 0.16, 0, 0, 0]), 0.04, np.array([0.012, 0.002, 0.012]))
 BASE = np.array([0.0, 0.50, 0.1005])
 # Tape standing up from the part's top, face towards +x (the cell file's layout).
@@ -97,19 +97,19 @@ def test_a_hanging_tip_is_taken_from_the_side_not_from_below():
 
 def test_peel_mode_pulls_straight_up_and_away():
     tip, nodes = tape(np.zeros(15))
-    params = GraspParams(0.15, 0.008, 0.05, 0.05, lift_mode="peel")
+    params = GraspParams(0.008, 0.05, 0.05, lift_mode="peel")
     plan = plan_grasp(tip, params, GRIPPER, LIMITS, tape_points=nodes)
     grasp = plan.waypoint("grasp").world_from_tcp
     lift = plan.waypoint("lift").world_from_tcp
     np.testing.assert_allclose(lift[:3, :3], grasp[:3, :3])      # a pull, no turn
     np.testing.assert_allclose(lift[:3, 3] - grasp[:3, 3], [0.0, 0.0, 0.05], atol=1e-9)
     with pytest.raises(PlanRefused, match="lift mode"):
-        GraspParams(0.15, 0.008, 0.05, 0.05, lift_mode="yank")
+        GraspParams(0.008, 0.05, 0.05, lift_mode="yank")
 
 
 def test_refuses_a_bad_estimate():
     tip, nodes = tape(np.zeros(15))
-    bad = TipFrame(tip.position, tip.rotation, cost=0.5)
+    bad = TipFrame(tip.position, tip.rotation, cost=0.05, verdict="ambiguous", reason="two shapes 0.5 apart")
     with pytest.raises(PlanRefused) as e:
         plan_grasp(bad, PARAMS, GRIPPER, LIMITS, tape_points=nodes)
     assert e.value.reason == "estimate rejected" and "0.5" in str(e.value)
