@@ -22,6 +22,7 @@ import numpy as np
 
 from tapecell.estimator.errors import TapecellError
 from tapecell.estimator.geometry import look_at
+from tapecell.estimator.scene import Box
 from tapecell.estimator.tape import TapeSpec
 
 Vec3 = tuple[float, float, float]
@@ -520,3 +521,12 @@ def tape_spec(cfg: CellConfig, plates: int | None = None) -> TapeSpec:
     t = cfg.tape
     n = plates or t.plates
     return TapeSpec(np.full(n, t.length / n), t.width, np.asarray(t.base_position, float), t.world_from_base)
+
+
+def scene_boxes(cfg: CellConfig) -> tuple[Box, ...]:
+    """The cell's known solid boxes in the world frame: the part and the table (the
+    simulator builds its geoms from the same numbers; the real cell's estimates use them)."""
+    p, tb = cfg.part, cfg.table
+    return (Box("part", np.array([p.center_xy[0], p.center_xy[1], p.size[2] / 2]), np.asarray(p.size, float), np.eye(3)),
+            Box("table", np.array([tb.center_xy[0], tb.center_xy[1], -tb.size[2] / 2]), np.asarray(tb.size, float),
+                np.eye(3)))

@@ -22,7 +22,9 @@ import weakref
 import numpy as np
 from numba import njit
 
+from .occlusion import SURFACE_M
 from .geometry import Camera
+from .scene import Box
 
 _camera_cache: "weakref.WeakKeyDictionary[Camera, np.ndarray]" = weakref.WeakKeyDictionary()
 
@@ -266,11 +268,12 @@ def chain_points(angles, base_position, base_rotation, segment_lengths, width, p
 
 @njit(cache=True, fastmath=False)
 def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns, edge, weight, segments,
-                   delta_out, delta_in):
+                   delta_out, delta_in, hidden):
     """One view's part of fit._residuals (no view shifts): coverage residuals of the
     observed outline (P) then the sample points' (ns) residuals.
 
-    pts: (B, ns + 3m, 3) sample points then corners; J: their Jacobian (B, ., 3, N).
+    pts: (B, ns + 3m, 3) sample points then corners; J: their Jacobian (B, ., 3, N);
+    hidden: (B, ns) sample points a scene box hides from this camera (cost nothing).
     Returns (robust cost (B,), weighted residuals (B, P + ns), Jacobian (B, P + ns, N)).
     """
     B = pts.shape[0]
@@ -352,7 +355,7 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
             centre = not edge[p]
             r = max(sdf, 0.0) if centre else sdf
             rho, w = _robust(r, edge[p] and sdf < 0, delta_out, delta_in)
-            if ignored:
+            if ignored or hidden[b, p]:
                 rho = 0.0
                 w = 0.0
             rho_sum += rho * weight[p] ** 2
@@ -393,11 +396,13 @@ def _sample_sdf(sdf_img, flag_img, x0, y0, has_ignore, u, v):
 
 
 @njit(cache=True, fastmath=False)
-def edge_cost(pts, n_edge, cam, sdf_img, flag_img, x0, y0, has_ignore, delta_out, delta_in):
+def edge_cost(pts, n_edge, cam, sdf_img, flag_img, x0, y0, has_ignore, delta_out, delta_in, hidden, hidden_cost):
     """Beam score of one view: (C, s, 3) candidates' sample points, the first ``n_edge``
     on plate edges (signed distance, robust), the rest on the centre line (only outside
     counts) -> (C,) summed robust losses (ignored pixels cost nothing). sdf_img, flag_img:
-    the field's channels 0 and 3 as (h, w) float32 planes."""
+    the field's channels 0 and 3 as (h, w) float32 planes; hidden: (C, s) points a scene
+    box hides from this camera (cost ``hidden_cost`` each: a partial chain is not better
+    for hiding behind the part)."""
     C, s = pts.shape[0], pts.shape[1]
     out = np.empty(C)
     for c in range(C):
@@ -408,7 +413,9 @@ def edge_cost(pts, n_edge, cam, sdf_img, flag_img, x0, y0, has_ignore, delta_out
             is_edge = p < n_edge
             r = sdf if is_edge else max(sdf, 0.0)
             rho, w = _robust(r, is_edge and sdf < 0, delta_out, delta_in)
-            if not ignored:
+            if hidden[c, p]:
+                total += hidden_cost
+            elif not ignored:
                 total += rho
         out[c] = total
     return out
@@ -616,24 +623,115 @@ def points(chain, angles: np.ndarray, jacobian: bool):
     return pts, (J if jacobian else None)
 
 
+HIDDEN_BEAM_COST = 2.0
+"""Beam-score loss of a sample point a scene box hides (a visible point on the boundary
+costs 0, one 2 px off 2): hiding is not free in the global search, else it fills the beam
+with chains that dive behind the part."""
+
+
+@njit(cache=True, fastmath=False)
+def segments_hit_boxes(origin, points, centers, rotations, halves):
+    """occlusion.hidden compiled: (N,) whether the open segment ``origin`` (3,) -> each of
+    ``points`` (N, 3) crosses one of the boxes (centres (K, 3), world_from_box rotations
+    (K, 3, 3), half edges (K, 3) already shrunk by the surface margin)."""
+    n = points.shape[0]
+    out = np.zeros(n, np.bool_)
+    for k in range(centers.shape[0]):
+        o = np.empty(3)
+        for a in range(3):
+            o[a] = ((origin[0] - centers[k, 0]) * rotations[k, 0, a] + (origin[1] - centers[k, 1]) * rotations[k, 1, a]
+                    + (origin[2] - centers[k, 2]) * rotations[k, 2, a])
+        for i in range(n):
+            if out[i]:
+                continue
+            enter = -np.inf
+            leave = np.inf
+            miss = False
+            for a in range(3):
+                p = ((points[i, 0] - centers[k, 0]) * rotations[k, 0, a] + (points[i, 1] - centers[k, 1]) * rotations[k, 1, a]
+                     + (points[i, 2] - centers[k, 2]) * rotations[k, 2, a])
+                d = p - o[a]
+                h = halves[k, a]
+                if d == 0.0:
+                    if abs(o[a]) > h:
+                        miss = True
+                        break
+                    continue
+                t1 = (-h - o[a]) / d
+                t2 = (h - o[a]) / d
+                enter = max(enter, min(t1, t2))
+                leave = min(leave, max(t1, t2))
+            if not miss and enter < leave and leave > 0.0 and enter < 1.0 - 1e-9:
+                out[i] = True
+    return out
+
+
+@njit(cache=True, fastmath=False)
+def box_penetration(points, centers, rotations, halves):
+    """occlusion.penetration compiled (halves already shrunk by the margin): (depth (N,),
+    gradient (N, 3))."""
+    n = points.shape[0]
+    depth = np.zeros(n)
+    grad = np.zeros((n, 3))
+    for k in range(centers.shape[0]):
+        for i in range(n):
+            best = np.inf
+            axis = 0
+            side = 1.0
+            for a in range(3):
+                loc = ((points[i, 0] - centers[k, 0]) * rotations[k, 0, a] + (points[i, 1] - centers[k, 1]) * rotations[k, 1, a]
+                       + (points[i, 2] - centers[k, 2]) * rotations[k, 2, a])
+                slack = halves[k, a] - abs(loc)
+                if slack < best:
+                    best = slack
+                    axis = a
+                    side = -1.0 if loc > 0 else 1.0
+            if best > depth[i]:
+                depth[i] = best
+                for c in range(3):
+                    grad[i, c] = side * rotations[k, c, axis]
+    return depth, grad
+
+
+def box_arrays(boxes) -> tuple:
+    """Scene boxes in kernel form: (centres (K, 3), rotations (K, 3, 3), half edges (K, 3)
+    shrunk by occlusion.SURFACE_M)."""
+    return (np.array([b.center for b in boxes], float).reshape(-1, 3),
+            np.array([b.rotation for b in boxes], float).reshape(-1, 3, 3),
+            np.array([b.half - SURFACE_M for b in boxes], float).reshape(-1, 3))
+
+
+def hidden_points(field, pts: np.ndarray) -> np.ndarray:
+    """(B, s) which of the sample points (B, s, 3) the view's scene boxes hide from it."""
+    if not field.boxes:
+        return np.zeros(pts.shape[:2], np.bool_)
+    return segments_hit_boxes(np.ascontiguousarray(field.camera.center, float),
+                              np.ascontiguousarray(pts.reshape(-1, 3), float),
+                              *field.box_arrays).reshape(pts.shape[:2])
+
+
 def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: float, delta_in: float):
     """Compiled per-view part of ``fit._residuals`` without view shifts: (residual blocks
-    [(B, P_k + s)] per view, Jacobian blocks [(B, P_k + s, 3n)] or [], robust cost (B,))."""
+    [(B, P_k + s)] per view, Jacobian blocks [(B, P_k + s, 3n)] or [], robust cost (B,),
+    the chains' points (B, s + 3m, 3) and their Jacobian (B, s + 3m, 3, 3n) or None)."""
     pair, pair_w, edge, weight, segments, pos, rot, lengths, width = _chain_arrays(chain)
     pts, J = chain_points(np.ascontiguousarray(angles, float), pos, rot, lengths, width, pair, pair_w, jacobian)
     cost = np.zeros(len(pts))
     rs, js = [], []
+    ns = chain.samples
     for f in fields:
         c, r, j = view_residuals(pts, J, jacobian, camera_params(f.camera), f.field, f.x0, f.y0, f.has_ignore,
-                                 f.outline, chain.samples, edge, weight, segments, delta_out, delta_in)
+                                 f.outline, ns, edge, weight, segments, delta_out, delta_in,
+                                 hidden_points(f, pts[:, :ns]))
         cost += c
         rs.append(r)
         if jacobian:
             js.append(j)
-    return rs, js, cost
+    return rs, js, cost, pts, (J if jacobian else None)
 
 
 _warm = False
+_WARM_BOX = Box("warm", np.zeros(3), np.full(3, 0.1), np.eye(3))
 
 
 def warm() -> float:
@@ -657,13 +755,16 @@ def warm() -> float:
     for jac in (False, True):
         pts, J = chain_points(angles, *args, jac)
         view_residuals(pts, J, jac, cam, field, 0, 0, True, np.zeros((2, 2)), 1, np.ones(1, np.bool_),
-                       np.ones(1), segments, 3.0, 1.5)
-    edge_cost(pts, 1, cam, field[:, :, 0].copy(), field[:, :, 3].copy(), 0, 0, True, 3.0, 1.5)
+                       np.ones(1), segments, 3.0, 1.5, np.zeros((1, 1), np.bool_))
+    edge_cost(pts, 1, cam, field[:, :, 0].copy(), field[:, :, 3].copy(), 0, 0, True, 3.0, 1.5,
+              np.zeros(pts.shape[:2], np.bool_), 0.0)
     outline_cost(pts, segments, cam, np.zeros((2, 2)), 3.0)
     lookup(field, 0, 0, True, np.zeros(2), np.zeros(2))
     t = np.array([0.5])
     F, E, _ = beam_candidates(np.eye(3)[None], np.zeros((1, 3)), np.eye(3)[None], 0.01, 0.005, t, t, t)
     diverse(np.arange(1), E, 1, 0.001)
+    segments_hit_boxes(np.zeros(3), np.ones((1, 3)), *box_arrays([_WARM_BOX]))
+    box_penetration(np.ones((1, 3)), *box_arrays([_WARM_BOX]))
     lab = np.zeros((2, 2), np.int32)
     map_labels(lab, np.zeros(label_areas(lab, 1).size, np.uint8), np.zeros((2, 2), np.uint8))
     _warm = True
@@ -676,7 +777,7 @@ def beam_edge_cost(field, pts: np.ndarray, edge_count: int, delta_out: float, de
     lead = pts.shape[:-2]
     flat = np.ascontiguousarray(pts, float).reshape(-1, pts.shape[-2], 3)
     out = edge_cost(flat, edge_count, camera_params(field.camera), *field.planes, field.x0, field.y0,
-                    field.has_ignore, delta_out, delta_in)
+                    field.has_ignore, delta_out, delta_in, hidden_points(field, flat), HIDDEN_BEAM_COST)
     return out.reshape(lead)
 
 

@@ -129,6 +129,8 @@ class VerdictRow:
     true_tip_views: int
     error: str = ""
     garbage: bool = False
+    worst_offset_px: float = np.nan
+    alternative_ratio: float = np.nan
 
 
 def true_tip_views(capture: Capture, radius_px: int = 2) -> int:
@@ -166,7 +168,9 @@ def verdict_row(kind: str, name: str, capture: Capture, garbage: bool = False) -
     if capture.truth is not None:
         e = errors(est.nodes, est.tip_rotation, capture.truth, est.tip_position)
         tip, normal = 1e3 * e.tip_m, e.normal_deg
-    return VerdictRow(kind, name, len(capture.views), est.verdict.value, tip, normal, est.time_s, views, "", garbage)
+    ratio = min((a.cost / est.cost for a in est.alternatives), default=np.nan)
+    return VerdictRow(kind, name, len(capture.views), est.verdict.value, tip, normal, est.time_s, views, "", garbage,
+                      float(np.max(est.view_offsets_px)), ratio)
 
 
 def verdict_summary(rows: Sequence[VerdictRow]) -> str:

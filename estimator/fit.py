@@ -30,6 +30,7 @@ analytic Jacobian:
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 from dataclasses import dataclass
@@ -42,10 +43,10 @@ from . import _kernels
 from .capture import Capture, View
 from .errors import EstimateError
 from .geometry import Camera, _distort
-from .result import Estimate
+from .result import Alternative, Estimate, Verdict
 from .silhouette import CostEvaluator, ViewTarget, combine, make_target, project_quads
 from .tape import TapeSpec, forward_kinematics, joint_rotations
-from .verdict import assess
+from .verdict import DISTINCT_TIP_M, assess, is_close_alternative, mask_fault
 
 Callback = Callable[[int, float, np.ndarray], None]
 
@@ -84,6 +85,9 @@ ANGLE_PRIOR = 0.05
 """Weight of a weak preference for small joint angles in the global stage."""
 WIDE_COST = 0.15
 """Eq.-11 cost above which a fit is poor enough to pay for the wide search."""
+WIDE_OFFSET_PX = 1.5
+"""... or when a view's mean boundary distance (its XOR over its outline length) is above
+this [px]: a view the first search's winner does not explain (about 1 in 10 good fits)."""
 WIDE_BEAM = 8
 """Partial chains kept per node in the wide search."""
 WIDE_VARIANTS = True
@@ -92,6 +96,14 @@ WIDE_GAIN = 0.85
 fraction of the first's (only a clear difference counts)."""
 ANGLE_PRIOR_PX = 1.0
 """Residual [px] per radian of every joint angle in the local stage (a weak prior)."""
+PENETRATION_PX_PER_M = 5000.0
+"""Residual [px] per metre a chain point lies inside a scene box (1 mm inside costs like a
+boundary 5 px off): the tape cannot pass through the part or the table."""
+BEAM_PENETRATION = 50.0
+"""Beam-score penalty per millimetre a candidate's sample point lies inside a scene box."""
+ALTERNATIVES = 2
+"""Distinct screened candidates (tips more than DISTINCT_TIP_M from the refined ones)
+refined as well, so that another shape explaining the views is found and weighed."""
 THIN_PX = 15.0
 """A view whose silhouette is on average thinner than this [px] (2 area / perimeter) has
 its robust terms weighted by (thickness / THIN_PX)^2 (0: off)."""
@@ -141,6 +153,12 @@ class _Field:
     planes: tuple = ()
     """(sdf (h, w), ignore flag (h, w) or (1, 1) zeros) float32: the field's channels 0
     and 3 on their own, for the beam's score (no gradient needed: half the memory read)."""
+    boxes: tuple = ()
+    """The capture's scene boxes: model points behind them from this camera count nothing."""
+    box_arrays: tuple = ()
+    """``boxes`` in the kernels' form (see :func:`_kernels.box_arrays`)."""
+    outline_px: float = 1.0
+    """Length of the observed silhouette's outer outline [px]."""
 
 
 def _drop_small(m: np.ndarray, connectivity: int) -> np.ndarray:
@@ -188,7 +206,7 @@ def _tape_box(mask: np.ndarray) -> tuple[int, int, int, int]:
     return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
 
 
-def _prepare(view: View) -> _Field:
+def _prepare(view: View, boxes: tuple = ()) -> _Field:
     cam = view.camera
     bx0, by0, bx1, by1 = _tape_box(view.mask)
     margin = OCCLUDED_MARGIN_PX if view.ignore is not None else MARGIN_PX
@@ -220,18 +238,41 @@ def _prepare(view: View) -> _Field:
     target = ViewTarget(cam, x0, y0, np.ascontiguousarray(observed), valid,
                         max(1.0, float(cv2.countNonZero(observed))))
     contours, _ = cv2.findContours(roi, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    return _Field(cam, x0, y0, field, ignore is not None, target, _outline(contours, ignore, x0, y0),
-                  _view_weight(roi, contours), (sdf, flag))
+    outline = _outline(contours, ignore, x0, y0)
+    if boxes and len(outline):
+        outline = outline[~_on_box_outline(cam, boxes, outline)]
+    perimeter = max(1.0, sum(cv2.arcLength(c, True) for c in contours))
+    return _Field(cam, x0, y0, field, ignore is not None, target, outline,
+                  _view_weight(roi, perimeter), (sdf, flag), tuple(boxes), _kernels.box_arrays(boxes) if boxes else (),
+                  perimeter)
 
 
-def _view_weight(roi: np.ndarray, contours) -> float:
+BOX_EDGE_PX = 3.0
+"""Observed outline points this close [px] to a scene box's projected outline are where the
+tape goes behind the box, not the tape's own edge: the coverage term leaves them out."""
+
+
+def _on_box_outline(camera: Camera, boxes, points: np.ndarray) -> np.ndarray:
+    """(P,) which outline points (P, 2) [px] lie on the projected outline of a box."""
+    out = np.zeros(len(points), bool)
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+    for box in boxes:
+        corners = box.center + (signs * box.half) @ box.rotation.T
+        if np.any(camera.to_camera(corners)[:, 2] <= 0):
+            continue
+        hull = cv2.convexHull(camera.project(corners).astype(np.float32))
+        d = np.array([cv2.pointPolygonTest(hull, (float(x), float(y)), True) for x, y in points])
+        out |= np.abs(d) < BOX_EDGE_PX
+    return out
+
+
+def _view_weight(roi: np.ndarray, perimeter: float) -> float:
     """Factor on a view's robust terms: 1, less for a very thin silhouette (the tape seen
     nearly edge-on). There a pixel of segmentation or calibration error moves the boundary
     across the whole band, so the edge terms of the right shape land outside and that one
     view would outvote the others (measured: sim edge-on captures)."""
     if THIN_PX <= 0:
         return 1.0
-    perimeter = sum(cv2.arcLength(c, True) for c in contours)
     thickness = 2.0 * float(cv2.countNonZero(roi)) / max(perimeter, 1.0)   # mean width [px]
     return min(1.0, thickness / THIN_PX) ** 2
 
@@ -400,6 +441,12 @@ class _Chain:
         pts, J = _kernels.points(self, a, True) if COMPILED else self.points(a, True)
         return pts[0, self.samples:], J[0, self.samples:]
 
+    def tips(self, angles: np.ndarray) -> np.ndarray:
+        """(B, n, 3) angles -> the chains' tips P_C[n] (B, 3)."""
+        a = np.asarray(angles, float).reshape(-1, self.n, 3)
+        pts, _ = _kernels.points(self, a, False) if COMPILED else self.points(a, False)
+        return pts[:, self.samples + self.n]
+
     def quads(self, angles: np.ndarray) -> np.ndarray:
         """(B, n, 3) angles -> the plates' quads (B, n, 4, 3), as ``TapeShape.quads``."""
         a = np.asarray(angles, float).reshape(-1, self.n, 3)
@@ -497,7 +544,7 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
     # reference (tests/test_estimator_kernels.py).
     compiled = COMPILED
     if compiled:
-        rs, js, cost = _compiled_view_terms(chain, fields, angles, jacobian)
+        rs, js, cost, pts, J = _compiled_view_terms(chain, fields, angles, jacobian)
     else:
         pts, J = chain.points(angles, jacobian)
     for k, f in enumerate(() if compiled else fields):
@@ -510,6 +557,9 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
         if c_j is not None:
             c_j = vw * c_j
         sdf, gx, gy, ignored = _lookup(f, u[:, :ns], v[:, :ns])
+        if f.boxes:
+            behind = _kernels.hidden_points(f, pts[:, :ns])
+            ignored = behind if ignored is None else ignored | behind
         r = np.where(centre, np.maximum(sdf, 0.0), sdf)
         rho, w = _robust(r, chain.edge & (sdf < 0))
         if ignored is not None:
@@ -530,10 +580,23 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
     prior = params * ANGLE_PRIOR_PX          # = params @ prior_J.T (diagonal), exactly
     rs.append(prior)
     cost += 0.5 * np.sum(prior * prior, axis=1)
+    boxes = fields[0].boxes if fields else ()
+    if boxes:
+        # The tape cannot pass through a scene box: its corners inside one are charged.
+        corners = pts[:, ns:]
+        depth, grad = _kernels.box_penetration(np.ascontiguousarray(corners.reshape(-1, 3)), *fields[0].box_arrays)
+        pen = PENETRATION_PX_PER_M * depth.reshape(B, -1)
+        rs.append(pen)
+        cost += 0.5 * np.sum(pen * pen, axis=1)
+        if jacobian:
+            g = PENETRATION_PX_PER_M * grad.reshape(B, -1, 3)
+            js_pen = np.einsum("bpk,bpkn->bpn", g, J[:, ns:])
     r = np.concatenate(rs, axis=1)
     if not jacobian:
         return r, None, cost
     js.append(np.broadcast_to(prior_J, (B,) + prior_J.shape))
+    if boxes:
+        js.append(js_pen)
     return r, np.concatenate(js, axis=1), cost
 
 
@@ -544,12 +607,12 @@ def _compiled_view_terms(chain: _Chain, fields: list[_Field], angles: np.ndarray
         return _kernels.view_terms(chain, fields, angles, jacobian, DELTA_OUT_PX, DELTA_IN_PX)
     rs, js, cost = [], [], np.zeros(len(angles))
     for f in fields:
-        (r,), j, c = _kernels.view_terms(chain, [f], angles, jacobian, DELTA_OUT_PX, DELTA_IN_PX)
+        (r,), j, c, pts, J = _kernels.view_terms(chain, [f], angles, jacobian, DELTA_OUT_PX, DELTA_IN_PX)
         w = np.sqrt(f.weight)
         rs.append(w * r)
         js += [w * jj for jj in j]
         cost += f.weight * c
-    return rs, js, cost
+    return rs, js, cost, pts, J
 
 
 def _levenberg_marquardt(chain: _Chain, fields: list[_Field], params: np.ndarray, iterations: int,
@@ -692,6 +755,11 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
             if ignored is not None:
                 rho = np.where(ignored, 0.0, rho)
             plate += f.weight * rho.sum(axis=2)
+        boxes = fields[0].boxes if fields else ()
+        if boxes:
+            depth, _ = _kernels.box_penetration(np.ascontiguousarray(ends.reshape(-1, 3), float),
+                                                *fields[0].box_arrays)   # the plates' end corners
+            plate += 1e3 * BEAM_PENETRATION * depth.reshape(plate.shape + (-1,)).sum(axis=-1)
         prior = ANGLE_PRIOR * np.sum(grid ** 2, axis=1)
         total = (scores[:, None] + plate + prior[None, :]).reshape(-1)
         count = beam * (4 if last else 1)
@@ -899,6 +967,7 @@ def _strip_stage(chain: _Chain, fields: list[_Field], angles: np.ndarray):
         fun = _corner_fit(chain.corners, goal, w, extra)
         return _gauss_newton(fun, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
 
+    output.tip = (fine.nodes[-1].copy(), fine.frames[-1].copy())   # the strip's end frame
     return output
 
 
@@ -921,10 +990,13 @@ def _tip_frame_rows(chain: _Chain, tip_frame: np.ndarray, weight: float):
 
 # --------------------------------------------------------------------------- public
 
-def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_costs):
+def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_costs, pool: list | None = None):
     """Local stage on candidate chains (B, n, 3): a few iterations on all at once, the
     best REFINE (by the robust cost) to convergence, ranked by the silhouette cost (eq.
-    11). Returns (angles (n, 3), trace, eq.-11 cost) of the winner."""
+    11). Returns (angles (n, 3), trace, eq.-11 cost) of the winner; appends every refined
+    chain as (eq.-11 cost, angles) to ``pool`` (the hypotheses the verdict weighs), with
+    the best ALTERNATIVES screened candidates whose tips lie more than DISTINCT_TIP_M from
+    the refined ones' refined too (distinct shapes the robust cost ranked lower)."""
     traces: list[list[np.ndarray]] = [[] for _ in starts]
     params = starts.reshape(len(starts), -1)
     params, cost, (r, J, _) = _levenberg_marquardt(chain, fields, params, LM_SCREEN, traces)
@@ -932,6 +1004,19 @@ def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_
     # samples and worse on sim captures); the silhouette cost (eq. 11) picks the winner.
     # The screen's residuals carry over: no re-evaluation at the kept candidates.
     keep = np.argsort(cost)[:REFINE]
+    if pool is not None and ALTERNATIVES > 0 and len(cost) > REFINE:
+        # Distinct hypotheses: the best screened chains whose tips are far from every kept
+        # one's, refined like the winner so that their costs compare.
+        tips = chain.tips(params[:, :3 * chain.n].reshape(-1, chain.n, 3))
+        far = np.ones(len(cost), bool)
+        extra = []
+        for k in np.argsort(cost):
+            d = np.linalg.norm(tips[k] - tips[np.concatenate([keep, extra]).astype(int)], axis=1)
+            if np.all(d > DISTINCT_TIP_M) and k not in keep:
+                extra.append(k)
+                if len(extra) == ALTERNATIVES:
+                    break
+        keep = np.concatenate([keep, np.array(extra, int)])
     if REFINE_EQ11 > 0 and len(cost) > REFINE:
         # Plus the best screened ones by the silhouette cost: where the model cannot follow
         # the tape (a tight curl at the tip) the robust boundary cost may prefer a wrong
@@ -946,7 +1031,19 @@ def _refine(chain: _Chain, fields: list[_Field], starts: np.ndarray, silhouette_
     refined = params[:, :3 * chain.n].reshape(-1, chain.n, 3)
     costs = silhouette_costs(refined)
     best = int(np.argmin(costs))
+    if pool is not None:
+        pool += [(float(c), a) for c, a in zip(costs, refined)]
     return refined[best], sub_traces[best], float(costs[best])
+
+
+def _mirrors(angles: np.ndarray) -> np.ndarray:
+    """(2, n, 3): ``angles`` with every out-of-plane bend mirrored (θy -> -θy), and with the
+    twist mirrored as well (the same silhouette seen from a camera facing the tape)."""
+    a, b = angles.copy(), angles.copy()
+    a[:, 1] *= -1
+    b[:, 1] *= -1
+    b[:, 0] *= -1
+    return np.array([a, b])
 
 
 def _variants(angles: np.ndarray) -> np.ndarray:
@@ -974,15 +1071,22 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     giving the chains to fall back to, in order, the plate fit last]) for estimate()'s
     guard."""
     chain = _Chain(capture.tape)
-    fields = [_prepare(v) for v in capture.views]
-    evaluator = CostEvaluator([f.target for f in fields])
+    fields = [_prepare(v, capture.scene) for v in capture.views]
+    evaluator = CostEvaluator([f.target for f in fields], capture.scene)
 
     def silhouette_costs(angles: np.ndarray) -> np.ndarray:
         return evaluator.costs(chain.quads(angles))
 
     starts = np.array(_beam_search(capture.tape, fields))
-    angles, trace, cost = _refine(chain, fields, starts, silhouette_costs)
-    if cost > WIDE_COST:
+    pool: list = []
+    angles, trace, cost = _refine(chain, fields, starts, silhouette_costs, pool)
+    # The classic silhouette ambiguity, a bend towards or away from the cameras: the
+    # winner's mirror images are refined too, as hypotheses (and the winner if better).
+    a2, t2, c2 = _refine(chain, fields, _mirrors(angles), silhouette_costs, pool)
+    if c2 < cost:
+        angles, trace, cost = a2, t2, c2
+    worst_px = max(c * f.target.area / f.outline_px for c, f in zip(evaluator.view_costs(chain.quads(angles)[0]), fields))
+    if cost > WIDE_COST or worst_px > WIDE_OFFSET_PX:
         # A poor fit: only these pay for a wider search (a finer, larger beam and the
         # other branches next to the winner); it replaces the first result only when its
         # silhouette cost is clearly lower.
@@ -990,12 +1094,14 @@ def fit_default(capture: Capture, callback: Callback | None = None):
         if WIDE_BEAM:
             parts.append(np.array(_beam_search(capture.tape, fields, _WIDE_GRID, WIDE_BEAM)))
         wide = np.concatenate(parts)
-        a2, t2, c2 = _refine(chain, fields, wide, silhouette_costs)
+        a2, t2, c2 = _refine(chain, fields, wide, silhouette_costs, pool)
         if c2 < WIDE_GAIN * cost:
             angles, trace, cost = a2, trace + t2, c2
     fallback = None
+    tip = None
     if STRIP:
         output = _strip_stage(chain, fields, angles)
+        tip = output.tip
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
         # above the guard: the chain without the tip-frame pull, then the plate fit.
@@ -1003,7 +1109,21 @@ def fit_default(capture: Capture, callback: Callback | None = None):
         fallback = (cost, alternatives + [lambda: plate])
         angles = output(STRIP_FRAME_WEIGHT)
         trace = trace + [angles]
-    return angles, trace, evaluator.evaluations, fallback
+    winner = plate if STRIP else angles
+    return angles, trace, evaluator.evaluations, fallback, _hypotheses(chain, pool, winner), tip
+
+
+def _hypotheses(chain: _Chain, pool: list, winner: np.ndarray) -> list:
+    """The distinct shapes among the refined chains ``pool`` [(eq.-11 cost, angles)]: best
+    first, each tip more than DISTINCT_TIP_M from the winner's plate fit and from every
+    better one's; as (cost, angles)."""
+    out, tips = [], [chain.tips(winner[None])[0]]
+    for cost, a in sorted(pool, key=lambda x: x[0]):
+        tip = chain.tips(a[None])[0]
+        if all(np.linalg.norm(tip - t) > DISTINCT_TIP_M for t in tips):
+            out.append((cost, a))
+            tips.append(tip)
+    return out
 
 
 _warmed = False
@@ -1046,19 +1166,51 @@ def _cost_roi(view: View, quads: np.ndarray) -> tuple[int, int, int, int] | None
 
 
 def _costed(capture: Capture, angles: np.ndarray):
-    """The chain's shape and its per-view silhouette costs (eq. 7), rendered only where
-    the mask or the model is."""
+    """The chain's shape, its per-view silhouette costs (eq. 7), rendered only where the
+    mask or the model is, and the evaluator that did it."""
     shape = forward_kinematics(capture.tape, angles)
     quads = shape.quads()
-    return shape, CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views]).view_costs(quads)
+    evaluator = CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views], capture.scene)
+    return shape, evaluator.view_costs(quads), evaluator
 
 
-def _judge(capture: Capture, view_costs: np.ndarray, shape, cost: float):
-    models = CostEvaluator([make_target(v, roi=_cost_roi(v, shape.quads())) for v in capture.views],
-                           capture.scene).model_masks(shape.quads())
-    j = assess(capture.views, capture.scene, capture.tape.width, view_costs, models, shape.nodes, shape.nodes[-1],
-               shape.frames[-1], cost, [])
-    return j.verdict, j.reason, j.tip_views
+def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, shape, tip_position: np.ndarray,
+           tip_rotation: np.ndarray, best_cost: float, hypotheses: list):
+    """(verdict, reason, tip_views, alternatives) of the output ``shape`` whose
+    ``view_costs`` ``evaluator`` gave; ``best_cost``: the plate fit's eq.-11 cost, the
+    scale of the ``hypotheses`` [(cost, angles)]."""
+    near = []
+    for cost, a in hypotheses:
+        if is_close_alternative(cost, best_cost):
+            alt = forward_kinematics(capture.tape, a)
+            near.append(Alternative(cost, alt.nodes[-1].copy(), alt.frames[-1].copy(), a))
+    targets = evaluator.targets
+    models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(shape.quads()), targets)]
+    j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
+               models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
+               [(a.cost, a.tip_position) for a in near])
+    return j.verdict, j.reason, j.tip_views, tuple(near), j.offsets_px
+
+
+def _garbage(capture: Capture, faults: list, method: str, start: float) -> Estimate:
+    """A "poor_fit" estimate of a capture whose views ``faults`` [(index, why)] hold no tape
+    silhouette: the fit of the other views (a straight tape when none is left), costed on
+    every view; nothing may act on it."""
+    bad = {k for k, _ in faults}
+    rest = [v for k, v in enumerate(capture.views) if k not in bad]
+    if rest:
+        est = estimate(dataclasses.replace(capture, views=rest), method)
+        angles, tip = est.angles, (est.tip_position, est.tip_rotation)
+    else:
+        angles = np.zeros((capture.tape.n, 3))
+    shape, view_costs, _ = _costed(capture, angles)
+    if not rest:
+        tip = (shape.nodes[-1].copy(), shape.frames[-1].copy())
+    k, why = faults[0]
+    reason = f"view {k} ({capture.views[k].camera.name}) is not a tape silhouette: {why}"
+    return Estimate(shape.nodes, angles, tip[0], tip[1], combine(view_costs), view_costs,
+                    time.perf_counter() - start, method, verdict=Verdict.POOR_FIT, verdict_reason=reason,
+                    view_offsets_px=np.full(len(capture.views), np.inf))
 
 
 def estimate(capture: Capture, method: str = "default", callback: Callback | None = None) -> Estimate:
@@ -1080,12 +1232,16 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     if method == "default":
         warm()  # once per process: compiling/loading the kernels is not fitting
     start = time.perf_counter()
-    fallback = None
+    faults = [(k, mask_fault(v)) for k, v in enumerate(capture.views)]
+    faults = [(k, f) for k, f in faults if f]
+    if faults:
+        return _garbage(capture, faults, method, start)
+    fallback, hypotheses, tip = None, [], None
     if method == "default":
-        angles, trace, evaluations, fallback = fit_default(capture)
+        angles, trace, evaluations, fallback, hypotheses, tip = fit_default(capture)
     else:
         angles, history, evaluations = fit_paper(capture, callback)
-    shape, view_costs = _costed(capture, angles)
+    shape, view_costs, evaluator = _costed(capture, angles)
     if fallback is not None:
         plate_cost, alternatives = fallback
         while alternatives and combine(view_costs) > STRIP_GUARD * plate_cost:
@@ -1094,16 +1250,23 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
             # The last alternative is the plate chain itself.
             angles = alternatives.pop(0)()
             trace = trace[:-1] + ([angles] if alternatives else [])
-            shape, view_costs = _costed(capture, angles)
+            shape, view_costs, evaluator = _costed(capture, angles)
+            if not alternatives:
+                tip = None   # back to the plate fit: the strip went astray
+    plate_cost = fallback[0] if fallback is not None else combine(view_costs)
+    # The tip frame: the strip's end (it follows a tip that curls within one plate, where
+    # the last plate is a chord), else the plate chain's F_n at P_C[n].
+    tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
+    verdict, reason, tip_views, alternatives, offsets = _judge(capture, evaluator, view_costs, shape, tip_position, tip_rotation,
+                                                      min(plate_cost, combine(view_costs)), hypotheses)
     elapsed = time.perf_counter() - start
-    full = CostEvaluator([make_target(v) for v in capture.views])
+    full = CostEvaluator([make_target(v) for v in capture.views], capture.scene)
     if method == "default":
         # The cost per iteration on the eq.-11 scale, for recordings and plots.
         history = [full.cost(forward_kinematics(capture.tape, a).quads()) for a in trace]
         if callback is not None:
             for k, (a, c) in enumerate(zip(trace, history), 1):
                 callback(k, c, a)
-    verdict, reason, tip_views = _judge(capture, view_costs, shape, combine(view_costs))
-    return Estimate(shape.nodes, angles, shape.nodes[-1].copy(), shape.frames[-1].copy(), combine(view_costs),
-                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views,
-                    trace=tuple(trace) if method == "default" else ())
+    return Estimate(shape.nodes, angles, tip_position, tip_rotation, combine(view_costs),
+                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
+                    trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)

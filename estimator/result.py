@@ -54,6 +54,8 @@ class Estimate:
     evaluations: number of cost evaluations.
     verdict: whether a robot may act on it (:class:`Verdict`); verdict_reason: one line why.
     tip_views: how many cameras see the free end.
+    view_offsets_px: per camera, the mean distance between the model's and the observed
+    silhouette boundaries [px] (what the verdict judges a view's fit by).
     trace: the plate chain's angles (n, 3) after each optimiser iteration of the winner
     (``history`` holds their eq.-11 costs); for plots and recordings.
     alternatives: other distinct shapes within the verdict's cost margin, best first.
@@ -74,6 +76,7 @@ class Estimate:
     tip_views: int = 0
     alternatives: tuple[Alternative, ...] = ()
     trace: tuple[np.ndarray, ...] = ()
+    view_offsets_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def actionable(self) -> bool:
@@ -92,6 +95,7 @@ class Estimate:
             "verdict": Verdict(self.verdict).value,
             "verdict_reason": self.verdict_reason,
             "tip_views": int(self.tip_views),
+            "view_offsets_px": [round(float(o), 3) for o in self.view_offsets_px],
             "alternatives": [a.to_json() for a in self.alternatives],
             "time_s": float(self.time_s),
             "method": self.method,

@@ -26,7 +26,7 @@ import numpy as np
 
 from .capture import View
 from .geometry import Camera
-from .occlusion import hidden
+from . import _kernels
 from .scene import Box
 from .tape import TapeShape
 
@@ -163,9 +163,40 @@ def subdivide(quads: np.ndarray, k: int) -> np.ndarray:
 
 
 def visible_quads(camera: Camera, quads_world: np.ndarray, boxes: Sequence[Box]) -> np.ndarray:
-    """The cells of (m, 4, 3) world quads that no box hides from ``camera``: (c, 4, 3)."""
-    cells = subdivide(quads_world, OCCLUSION_CELLS).reshape(-1, 4, 3)
-    return cells[~hidden(camera.center, cells.mean(axis=1), boxes)]
+    """What no box hides from ``camera`` of (m, 4, 3) world quads, as quads (c, 4, 3): a
+    plate whose corners and centre are all seen whole, one they all hide not at all, and
+    the cells of the others that are seen."""
+    return visible_quads_batch(camera, np.asarray(quads_world, float).reshape(1, -1, 4, 3), boxes)[0]
+
+
+def visible_quads_batch(camera: Camera, quads_world: np.ndarray, boxes: Sequence[Box]) -> list[np.ndarray]:
+    """:func:`visible_quads` of B chains' quads (B, m, 4, 3) at once: a list of B (c, 4, 3)."""
+    B, m = quads_world.shape[:2]
+    probes = np.concatenate([quads_world, quads_world.mean(axis=2, keepdims=True)], axis=2)   # (B, m, 5, 3)
+    arrays = _box_arrays(boxes)
+    center = np.ascontiguousarray(camera.center, float)
+    behind = _kernels.segments_hit_boxes(center, probes.reshape(-1, 3), *arrays).reshape(B, m, 5)
+    whole, mixed = ~behind.any(axis=2), behind.any(axis=2) & ~behind.all(axis=2)
+    if not mixed.any():
+        return [quads_world[b][whole[b]] for b in range(B)]
+    k = OCCLUSION_CELLS * OCCLUSION_CELLS
+    cells = subdivide(quads_world[mixed], OCCLUSION_CELLS)                                  # (M, k, 4, 3)
+    seen = ~_kernels.segments_hit_boxes(center, cells.reshape(-1, 4, 3).mean(axis=1), *arrays).reshape(-1, k)
+    owner = np.nonzero(mixed)[0]
+    return [np.concatenate([quads_world[b][whole[b]], cells[owner == b][seen[owner == b]]]) for b in range(B)]
+
+
+def _box_arrays(boxes: Sequence[Box]) -> tuple:
+    key = tuple(id(b) for b in boxes)
+    arrays = _BOX_ARRAYS.get(key)
+    if arrays is None or arrays[0] is not boxes[0]:
+        if len(_BOX_ARRAYS) > 64:
+            _BOX_ARRAYS.clear()
+        arrays = _BOX_ARRAYS[key] = (boxes[0], _kernels.box_arrays(boxes))
+    return arrays[1]
+
+
+_BOX_ARRAYS: dict = {}
 
 
 class CostEvaluator:
@@ -209,7 +240,12 @@ class CostEvaluator:
         all chains at once)."""
         B, m = quads_world.shape[:2]
         if self.boxes:
-            return np.array([self.cost(q) for q in quads_world]) if B else np.zeros(0)
+            self.evaluations += B
+            out = np.zeros((B, len(self.targets)))
+            for k, t in enumerate(self.targets if B else ()):
+                for b, q in enumerate(visible_quads_batch(t.camera, quads_world, self.boxes)):
+                    out[b, k] = self._view_xor(k, project_quads(t.camera, q)) / t.area
+            return np.array([combine(row) for row in out])
         self.evaluations += B
         out = np.zeros((B, len(self.targets)))
         for k, t in enumerate(self.targets if B else ()):

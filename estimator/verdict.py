@@ -13,6 +13,8 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   its tip corners are projected into each view; a view sees the free end when at least
   ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore mask and
   in front of every scene box. Fewer than two such views: ``hidden``.
+- Can the end's depth be told? The cameras that see it must look at it from directions at
+  least ``MIN_PARALLAX_DEG`` apart, else ``ambiguous``.
 - Does a distinct shape explain the views nearly as well? An alternative whose tip is more
   than ``DISTINCT_TIP_M`` from the estimate's, refined like the winner, whose silhouette
   cost (eq. 11) is at most ``AMBIGUOUS_RATIO`` times the winner's (plus
@@ -36,14 +38,25 @@ from .scene import Box
 
 POOR_OFFSET_PX = 4.0
 """Mean boundary distance [px] in a view above which the fit does not explain it."""
+END_OFFSET_PX = 2.0
+"""Mean boundary distance [px] around the tip's projection above which a view that sees the
+free end does not explain it: the end itself is wrong (a curl the model did not follow)
+however well the rest fits."""
+END_WINDOW_PX = 20
+"""Half size of the window around the tip's projection in which the free end's own fit is
+judged [px]."""
 TIP_SPAN_M = 0.005
 """Length of the free end [m] whose visibility decides whether a camera sees it."""
 TIP_SEEN_FRACTION = 0.5
 """Fraction of the free end's points a camera must see to count as seeing it."""
+MIN_PARALLAX_DEG = 10.0
+"""The cameras that see the free end must look at it from directions at least this far apart
+[deg] (the cell's are ~35 deg apart): from nearly one direction its depth is undetermined,
+and shapes whose tips lie anywhere along it explain the views alike (``ambiguous``)."""
 DISTINCT_TIP_M = 0.010
 """Tips further apart than this [m] make two shapes distinct hypotheses (formats.md)."""
-AMBIGUOUS_RATIO = 1.3
-AMBIGUOUS_ABS = 0.02
+AMBIGUOUS_RATIO = 1.25
+AMBIGUOUS_ABS = 0.005
 """A distinct alternative with eq.-11 cost <= AMBIGUOUS_RATIO * best + AMBIGUOUS_ABS
 explains the views nearly as well as the estimate."""
 
@@ -62,26 +75,43 @@ class Judgement:
 def _outline(m: np.ndarray) -> tuple[float, float]:
     """(area, outline length) [px] of a uint8 0/1 mask: its pixels and its boundary pixels."""
     x, y, w, h = cv2.boundingRect(m)
-    roi = np.pad(m[y:y + h, x:x + w], 1)
+    roi = cv2.copyMakeBorder(m[y:y + h, x:x + w], 1, 1, 1, 1, cv2.BORDER_CONSTANT, value=0)
     return float(cv2.countNonZero(roi)), float(cv2.countNonZero(roi - cv2.erode(roi, np.ones((3, 3), np.uint8))))
 
 
-def observed_size(views: Sequence[View]) -> tuple[np.ndarray, np.ndarray]:
-    """(areas, outline lengths), each (views,) [px]: the observed silhouette's counted
-    pixels (eq. 7's r_d) and its boundary pixels, ignored pixels excluded; at least 1."""
-    areas, lengths = np.ones(len(views)), np.ones(len(views))
-    for k, v in enumerate(views):
-        m = v.mask.astype(np.uint8)
-        if v.ignore is not None:
-            m[v.ignore] = 0
-        a, length = _outline(m)
-        areas[k], lengths[k] = max(1.0, a), max(1.0, length)
-    return areas, lengths
+MAX_COVER = 0.4
+"""A mask whose tape covers more than this fraction of its image is not a tape's silhouette
+(an inverted or white mask)."""
+MAX_REGIONS = 200
+"""... nor one split into more regions than this (noise); a tape's mask is one region and a
+few speckles."""
+MIN_AREA_PX = 30
+"""... nor one with fewer tape pixels than this."""
 
 
-def model_outline_lengths(model_masks: Sequence[np.ndarray]) -> np.ndarray:
-    """(views,) outline length [px] of each view's model silhouette (uint8 0/1 images)."""
-    return np.array([max(1.0, _outline(m)[1]) for m in model_masks])
+def mask_fault(view: View) -> str:
+    """Why ``view``'s mask is not a tape's silhouette ('' when it may be one)."""
+    m = view.mask.astype(np.uint8)
+    if view.ignore is not None:
+        m[view.ignore] = 0
+    area = cv2.countNonZero(m)
+    total = m.size - (0 if view.ignore is None else int(np.count_nonzero(view.ignore)))
+    if area < MIN_AREA_PX:
+        return f"its mask shows {area} tape pixels"
+    if area > MAX_COVER * max(total, 1):
+        return f"its mask covers {100 * area / max(total, 1):.0f} % of the image (inverted or white?)"
+    x, y, w, h = cv2.boundingRect(m)
+    regions = cv2.connectedComponents(m[y:y + h, x:x + w], connectivity=8)[0] - 1
+    if regions > MAX_REGIONS:
+        return f"its mask is {regions} separate regions (noise)"
+    return ""
+
+
+def sizes(masks: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(areas, outline lengths), each (views,) [px], of uint8 0/1 silhouettes (any crop
+    holding them): their pixels and their boundary pixels; at least 1."""
+    out = np.array([_outline(m) for m in masks]).reshape(-1, 2)
+    return np.maximum(out[:, 0], 1.0), np.maximum(out[:, 1], 1.0)
 
 
 def boundary_offsets(view_costs: np.ndarray, areas: np.ndarray, lengths: np.ndarray) -> np.ndarray:
@@ -89,15 +119,39 @@ def boundary_offsets(view_costs: np.ndarray, areas: np.ndarray, lengths: np.ndar
     return np.asarray(view_costs, float) * np.asarray(areas, float) / np.asarray(lengths, float)
 
 
-def end_points(nodes: np.ndarray, tip_position: np.ndarray, tip_rotation: np.ndarray, width: float) -> np.ndarray:
+def end_points(tip_position: np.ndarray, tip_rotation: np.ndarray, width: float) -> np.ndarray:
     """(k, 3) world points of the free end: the centre line's last TIP_SPAN_M and the tip's
     two corners."""
-    nodes = np.asarray(nodes, float)
     back = tip_position - TIP_SPAN_M * tip_rotation[:, 0]
     t = np.linspace(0.0, 1.0, 6)[:, None]
     line = back + t * (tip_position - back)
     half = 0.5 * width * tip_rotation[:, 1]
     return np.vstack([line, tip_position + half, tip_position - half])
+
+
+def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: Sequence[np.ndarray],
+                origins: Sequence[tuple[int, int]], tip_position: np.ndarray) -> np.ndarray:
+    """(views,) mean boundary distance [px] within END_WINDOW_PX of the tip's projection:
+    how well the free end itself is explained in each view (inf where it projects outside
+    the crops). ``observed``, ``models``: uint8 crops with top-left pixels ``origins``."""
+    out = np.full(len(views), np.inf)
+    r = END_WINDOW_PX
+    for k, v in enumerate(views):
+        uv = v.camera.project(np.asarray(tip_position, float)[None])[0]
+        if not np.all(np.isfinite(uv)):
+            continue
+        x0, y0 = origins[k]
+        u, w = int(round(uv[0])) - x0, int(round(uv[1])) - y0
+        o, m = observed[k], models[k]
+        h, wd = o.shape
+        a0, a1, b0, b1 = max(0, w - r), min(h, w + r + 1), max(0, u - r), min(wd, u + r + 1)
+        if a1 <= a0 or b1 <= b0:
+            continue
+        ow, mw = o[a0:a1, b0:b1], m[a0:a1, b0:b1]
+        xor = float(cv2.countNonZero(cv2.bitwise_xor(ow, mw)))
+        length = min(_outline(ow)[1], _outline(mw)[1]) if ow.any() and mw.any() else 0.0
+        out[k] = xor / max(length, 1.0)
+    return out
 
 
 def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]) -> list[bool]:
@@ -119,15 +173,43 @@ def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]
 
 
 def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs: np.ndarray,
-           model_masks: Sequence[np.ndarray], nodes: np.ndarray, tip_position: np.ndarray,
-           tip_rotation: np.ndarray, best_cost: float, alternatives: Sequence[tuple[float, np.ndarray]]) -> Judgement:
-    """The whole judgement of an estimate (see the module's text); ``model_masks``: the
-    estimate's silhouette in each view (uint8 0/1 images of any crop holding it)."""
-    areas, lengths = observed_size(views)
-    offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, model_outline_lengths(model_masks)))
-    seen = seeing_views(views, end_points(nodes, tip_position, tip_rotation, width), boxes)
+           observed: Sequence[np.ndarray], models: Sequence[np.ndarray], origins: Sequence[tuple[int, int]],
+           tip_position: np.ndarray, tip_rotation: np.ndarray, best_cost: float,
+           alternatives: Sequence[tuple[float, np.ndarray]]) -> Judgement:
+    """The whole judgement of an estimate (see the module's text). ``observed``, ``models``:
+    each view's observed silhouette (ignored pixels cleared) and the estimate's, as uint8
+    0/1 crops whose top-left pixels are ``origins``; ``view_costs``: eq. 7 per view."""
+    areas, lengths = sizes(observed)
+    offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
+    seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
+    ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(seen), best_cost, tip_position, alternatives)
+    parallax = _parallax_deg([v.camera.center for v, s_ in zip(views, seen) if s_], tip_position)
+    if verdict is Verdict.OK and parallax < MIN_PARALLAX_DEG:
+        verdict, reason = Verdict.AMBIGUOUS, (f"the cameras that see the free end look at it from directions "
+                                              f"{parallax:.1f} deg apart (< {MIN_PARALLAX_DEG:g}): its depth is "
+                                              f"undetermined")
+    bad_end = [k for k in range(len(views)) if seen[k] and ends[k] > END_OFFSET_PX]
+    if verdict is not Verdict.POOR_FIT and bad_end:
+        k = bad_end[0]
+        verdict, reason = Verdict.POOR_FIT, (f"view {k} does not explain the free end: mean boundary distance "
+                                             f"{ends[k]:.1f} px around the tip > {END_OFFSET_PX:g} px")
     return Judgement(verdict, reason, sum(seen), offsets)
+
+
+def is_close_alternative(cost: float, best_cost: float) -> bool:
+    """Does a hypothesis of eq.-11 ``cost`` explain the views nearly as well as the best?"""
+    return cost <= AMBIGUOUS_RATIO * best_cost + AMBIGUOUS_ABS
+
+
+def _parallax_deg(centers: Sequence[np.ndarray], point: np.ndarray) -> float:
+    """The widest angle [deg] between two of the rays from ``centers`` to ``point``."""
+    rays = [(c - point) / np.linalg.norm(c - point) for c in centers]
+    best = 0.0
+    for i in range(len(rays)):
+        for j in range(i + 1, len(rays)):
+            best = max(best, float(np.degrees(np.arccos(np.clip(rays[i] @ rays[j], -1.0, 1.0)))))
+    return best
 
 
 def judge(offsets_px: np.ndarray, tip_views: int, best_cost: float, best_tip: np.ndarray,
@@ -142,7 +224,7 @@ def judge(offsets_px: np.ndarray, tip_views: int, best_cost: float, best_tip: np
         return Verdict.HIDDEN, f"{tip_views} camera(s) see the free end, 2 needed"
     for cost, tip in alternatives:
         d = float(np.linalg.norm(np.asarray(tip) - best_tip))
-        if d > DISTINCT_TIP_M and cost <= AMBIGUOUS_RATIO * best_cost + AMBIGUOUS_ABS:
+        if d > DISTINCT_TIP_M and is_close_alternative(cost, best_cost):
             return Verdict.AMBIGUOUS, (f"a shape with its tip {1e3 * d:.0f} mm away explains the views "
                                        f"nearly as well (cost {cost:.3f} vs {best_cost:.3f})")
     return Verdict.OK, ""

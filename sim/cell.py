@@ -17,7 +17,7 @@ from tapecell.estimator.capture import Capture, Truth, View
 from tapecell.estimator.geometry import Camera
 from tapecell.estimator.segment import SegmentationParams, segment_tape
 
-from tapecell.cell.config import TOOL_NAMES, CellConfig, CellConfigError
+from tapecell.cell.config import scene_boxes, TOOL_NAMES, CellConfig, CellConfigError
 from .scene import GROUP_ARM, GROUP_TAPE, TAPE_HINGES, TOOL_GROUPS, build_spec
 from .tape_shape import RestShape, rest_shape, tape_spec
 from tapecell.cell.kinematics import JOINT_NAMES
@@ -349,4 +349,5 @@ class SimCell:
             views.append(View(cam, mask, ignore, image if rgb else None))
         spec = tape_spec(self.config, self.config.tape.estimator_plates)
         self.timing = CaptureTiming(self.timing.settle_s, time.perf_counter() - t0)
-        return Capture(spec, views, self.truth(), segmentation=dict(self.segmentation_overrides))
+        return Capture(spec, views, self.truth(), segmentation=dict(self.segmentation_overrides),
+                       scene=scene_boxes(self.config))

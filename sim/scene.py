@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from tapecell.cell.config import TOOL_NAMES, CellConfig, look_at_world_from_cv, pose_to_matrix
+from tapecell.cell.config import TOOL_NAMES, CellConfig, look_at_world_from_cv, pose_to_matrix, scene_boxes
 
 GROUP_WORLD, GROUP_TAPE, GROUP_ARM, GROUP_PLATE, GROUP_NEEDLE, GROUP_GRIPPER = range(6)
 TOOL_GROUPS = {"plate": GROUP_PLATE, "needle": GROUP_NEEDLE, "gripper": GROUP_GRIPPER}
@@ -114,14 +114,10 @@ def build_spec(cfg: CellConfig, n_cameras: int) -> mujoco.MjSpec:
 
 def _add_world(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
     wb = spec.worldbody
-    tb = cfg.table
-    wb.add_geom(name="table", type=mujoco.mjtGeom.mjGEOM_BOX, size=np.asarray(tb.size) / 2,
-                pos=[tb.center_xy[0], tb.center_xy[1], -tb.size[2] / 2], rgba=list(tb.rgba),
-                contype=0, conaffinity=0, group=GROUP_WORLD)
-    p = cfg.part
-    wb.add_geom(name="part", type=mujoco.mjtGeom.mjGEOM_BOX, size=np.asarray(p.size) / 2,
-                pos=[p.center_xy[0], p.center_xy[1], p.size[2] / 2], rgba=list(p.rgba),
-                contype=0, conaffinity=0, group=GROUP_WORLD)
+    rgba = {"table": cfg.table.rgba, "part": cfg.part.rgba}
+    for box in scene_boxes(cfg):   # the same boxes the captures carry as their scene
+        wb.add_geom(name=box.name, type=mujoco.mjtGeom.mjGEOM_BOX, size=box.half, pos=box.center,
+                    rgba=list(rgba[box.name]), contype=0, conaffinity=0, group=GROUP_WORLD)
     wb.add_light(name="key", pos=[1.2, 0.2, 1.5], dir=[-0.6, 0.2, -0.8], diffuse=[0.6, 0.6, 0.6],
                  specular=[0.1, 0.1, 0.1], castshadow=True, type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
     wb.add_light(name="fill", pos=[0.6, 0.5, 1.0], dir=[-0.3, 0.0, -1.0], diffuse=[0.3, 0.3, 0.3],

@@ -91,3 +91,45 @@ def test_occlusion_geometry():
     d0, g = penetration(p, [box])
     fd = [(penetration(p + 1e-7 * e, [box])[0][0] - d0[0]) / 1e-7 for e in np.eye(3)]
     assert np.allclose(g[0], fd, atol=1e-5)
+
+
+def test_compiled_occlusion_matches_reference():
+    """The kernels' segment-box and penetration tests equal estimator/occlusion.py."""
+    from tapecell.estimator import _kernels
+
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        box = Box("b", rng.normal(size=3) * 0.1, rng.uniform(0.05, 0.2, 3), cv2.Rodrigues(rng.normal(size=3))[0])
+        pts, eye = rng.normal(size=(300, 3)) * 0.2, rng.normal(size=3)
+        arrays = _kernels.box_arrays([box])
+        assert np.array_equal(hidden(eye, pts, [box]), _kernels.segments_hit_boxes(eye, pts, *arrays))
+        d_ref, g_ref = penetration(pts, [box])
+        d, g = _kernels.box_penetration(pts, *arrays)
+        assert np.allclose(d, d_ref) and np.allclose(g[d > 0], g_ref[d > 0])
+
+
+def test_curl_seen_from_one_direction_is_ambiguous():
+    """Two cameras 20 mm apart at 600 mm see a curled tape from nearly one direction: the
+    silhouettes leave the tip's depth open, so the estimate is "ambiguous", never "ok"."""
+    from tapecell.estimator import Camera, Capture, TapeSpec, forward_kinematics
+    from tapecell.estimator.capture import Truth
+    from tapecell.estimator.geometry import look_at
+    from tapecell.estimator.silhouette import render_view
+
+    trunk, left = np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])
+    normal = np.cross(trunk, left)
+    spec = TapeSpec(np.full(5, 0.03), 0.03, np.zeros(3), np.column_stack([trunk, left, normal]))
+    angles = np.zeros((5, 3))
+    angles[1:, 1] = 0.45
+    shape = forward_kinematics(spec, angles)
+    target = np.array([0.0, 0.0, 0.075])
+    views = []
+    for k, dy in enumerate([-0.01, 0.01]):
+        center = target + np.array([0.0, dy, 0.0]) + 0.6 * normal
+        R = look_at(center, target, trunk).T
+        cam = Camera(f"cam{k}", 640, 480, np.array([[1371.0, 0, 319.5], [0, 1371.0, 239.5], [0, 0, 1]]),
+                     np.zeros(5), R, -R @ center)
+        views.append(View(cam, render_view(cam, shape)))
+    est = estimate(Capture(spec, views, Truth(np.arange(6) * 0.03, shape.nodes, shape.frames[-1])))
+    assert est.verdict is Verdict.AMBIGUOUS, est.verdict_reason
+    assert "depth" in est.verdict_reason
