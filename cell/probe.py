@@ -13,7 +13,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from tapecell.estimator.errors import TaskFailed
+from tapecell.estimator.errors import TapecellError, TaskFailed
 
 from .poses import matrix_to_pose6, pose6_to_matrix
 
@@ -82,7 +82,8 @@ def guided_probe(arm, flange_from_needle: Any, labels: Sequence[str], prompt: Ca
     Starts teach mode, then for each label waits for Enter (the operator has put the needle
     on the point) and records the needle tip = reported flange pose composed with
     ``flange_from_needle``. Typing ``s`` skips a point, ``q`` stops. Teach mode is ended
-    in a ``finally``: on Ctrl-C, an error, or normal return.
+    on every path: on Ctrl-C, an error (then a failure to end it does not hide the error),
+    or normal return.
     """
     F = pose6_to_matrix(flange_from_needle) if np.shape(flange_from_needle) == (6,) else np.asarray(flange_from_needle)
     prompt = prompt or (lambda text: input(text))
@@ -99,8 +100,13 @@ def guided_probe(arm, flange_from_needle: Any, labels: Sequence[str], prompt: Ca
             world_from_needle = pose6_to_matrix(arm.tcp_pose()) @ F
             points.append(ProbedPoint(label, world_from_needle[:3, 3].copy()))
             log(f"{label}: {np.round(1000 * world_from_needle[:3, 3], 2).tolist()} mm")
-    finally:
-        arm.freedrive(False)
+    except BaseException:
+        try:
+            arm.freedrive(False)
+        except TapecellError:
+            pass    # the arm is gone (it was told to stop): the first error says why
+        raise
+    arm.freedrive(False)
     if not points:
         raise ProbeError("no point was recorded")
     return points

@@ -26,7 +26,7 @@ EXIT_CODES = """exit status:
      an output that would replace a file (see --force)
   3  the robot or other hardware failed: no answer within its deadline, a dropped
      connection, a protective stop, a camera that cannot be opened
-  130 interrupted (Ctrl-C)"""
+  130 interrupted (Ctrl-C); 143 terminated (SIGTERM), after the same cleanup"""
 
 
 class Parser(argparse.ArgumentParser):

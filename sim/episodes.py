@@ -56,7 +56,7 @@ def load_results(path: Path) -> list[dict[str, Any]]:
 def append_result(path: Path, doc: dict[str, Any]) -> None:
     """Append one JSON line with a single write and fsync, so lines never interleave."""
     data = (json.dumps(doc) + "\n").encode()
-    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)   # the umask decides
     try:
         os.write(fd, data)
         os.fsync(fd)

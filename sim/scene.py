@@ -231,7 +231,9 @@ def _add_actuators(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
 
     for j, name in enumerate(JOINT_NAMES):
         jt = spec.joint(name)
-        jt.damping = [cfg.arm.damping, 0, 0]
+        # The joint torque limits (ur5e.xml) must leave the servo room to drive a joint at
+        # full speed against its damping: at most half the limit (the wrist's 28 N m).
+        jt.damping = [min(cfg.arm.damping, 0.5 * jt.actfrcrange[1] / cfg.arm.max_joint_speed), 0, 0]
         a = spec.add_actuator(name=name, target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         a.set_to_position(kp=cfg.arm.kp)
         a.ctrlrange = [JOINT_LOWER[j], JOINT_UPPER[j]]

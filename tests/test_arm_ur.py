@@ -15,7 +15,7 @@ from tapecell.cell.kinematics import fk
 from tapecell.cell.poses import matrix_to_pose6
 from tapecell.cell.safety import SafetyError, SafetyLimits
 from tapecell.cell.config import GripperIOSection
-from tapecell.cell.ur import ArmConfigError, URArm, probe_rtde
+from tapecell.cell.ur import ArmConfigError, KinematicsMismatch, URArm, probe_rtde
 from fakes import FakeRobot, install_fake_rtde
 
 Q_START = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])   # flange near (-0.13, 0.34, 0.35)
@@ -301,3 +301,36 @@ def test_dropped_link_is_reconnected_boundedly(robot, rtde_server):
         with pytest.raises(ArmError, match="3 reconnection attempt"):
             arm.joints()
         assert [c[0] for c in robot.log].count("dead.reconnect") == 3
+
+
+# ---------------------------------------------------------------- kinematics vs the controller's
+def test_kinematics_are_checked_against_the_controllers_before_each_move(robot, rtde_server):
+    q_target = Q_START + np.array([0.1, -0.05, 0.05, 0.0, 0.0, 0.2])
+    with make_arm(rtde_server.port) as arm:
+        connect_calls = [c for c in robot.log if c[0] == "getForwardKinematics"]
+        assert connect_calls == [("getForwardKinematics", Q_START.tolist(), [0.0] * 6)]   # on connecting
+        arm.move_joints(q_target, 0.5, 1.0)
+        target = matrix_to_pose6(fk(q_target)) + np.array([0.0, 0.0, 0.02, 0, 0, 0])
+        arm.move_linear(target, 0.1, 0.5)
+    names = [c[0] for c in robot.log]
+    j, l = names.index("moveJ"), names.index("moveL")
+    second_fk = [i for i, n in enumerate(names) if n == "getForwardKinematics"][1]
+    assert robot.log[second_fk] == ("getForwardKinematics", q_target.tolist(), [0.0] * 6)
+    assert second_fk < names.index("isJointsWithinSafetyLimits") < j
+    ik_call = robot.log[names.index("getInverseKinematics")]
+    assert np.allclose(ik_call[1], target) and np.allclose(ik_call[2], q_target)   # near where the arm is
+    assert j < names.index("getInverseKinematics") < names.index("isPoseWithinSafetyLimits") < l
+
+
+def test_a_calibration_within_tolerance_is_accepted_and_beyond_it_refused(robot, rtde_server):
+    robot.calibration[:3, 3] = [0.002, 0.0015, -0.001]          # a real UR's 2-3 mm
+    with make_arm(rtde_server.port) as arm:
+        q = arm.ik(fk(Q_START), Q_START)
+        assert np.allclose(robot.world_from_flange(q), fk(Q_START), atol=1e-9)   # the controller's joints
+    robot.calibration[:3, 3] = [0.0, 0.012, 0.0]
+    log_len = len(robot.log)
+    with pytest.raises(KinematicsMismatch, match="12.0 mm") as e:
+        make_arm(rtde_server.port).connect()
+    assert e.value.exit_code == 3
+    assert robot.log[-3:] == [("control.disconnect",), ("receive.disconnect",), ("io.disconnect",)]
+    assert not any(c[0] in ("moveJ", "moveL") for c in robot.log[log_len:])

@@ -285,3 +285,21 @@ def test_a_terminated_episode_leaves_no_recording(tmp_path):
     assert proc.returncode == 143, err
     assert err.strip().splitlines()[-1] == "tapecell: terminated" and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_episodes_keep_a_users_folder_but_resume_their_own(tmp_path, capsys):
+    out = tmp_path / "runs"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    line = _error(["episodes", "--n", "1", "--out", out], capsys)
+    assert "folder is not empty" in line and "--force" in line
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
+
+
+def test_calibrate_checks_its_images_before_asking(tmp_path, monkeypatch, capsys):
+    from tapecell.cell.config import default_cell_path
+
+    monkeypatch.setattr("builtins.input", lambda prompt="": pytest.fail("asked before checking the images"))
+    line = _error(["calibrate", "--config", default_cell_path(), "--out", tmp_path / "c.json", "--execute",
+                   "--images", tmp_path / "missing"], capsys)
+    assert "image folder not found" in line

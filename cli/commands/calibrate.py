@@ -135,15 +135,16 @@ def calibrate_real(cell, args, rec=None, log=print) -> CalibrationResult:
     names = [c.name for c in cell.cameras.camera[:len(poses[0].view_deg)]]
     images = f"images from {args.images}" if args.images is not None else \
         f"images from camera devices {list(cell.robot.camera_devices[:len(names)])}"
-    confirm_robot(cell.robot.host, cell.robot.port, [
-        f"move the arm (cross plate mounted) through {len(poses)} planned calibration poses at 0.3 rad/s, "
-        f"starting with a joint move to {np.round(poses[0].joints, 3).tolist()} rad",
-        f"take {images} at each pose and write {args.out}"], args.yes)
+    # The image source first: a missing folder or camera is found before you are asked.
     if args.images is not None:
         source = FolderCameras(args.images, names)
     else:
         source = VideoCameras(cell.robot.camera_devices[:len(names)], names)
     try:
+        confirm_robot(cell.robot.host, cell.robot.port, [
+            f"move the arm (cross plate mounted) through {len(poses)} planned calibration poses at 0.3 rad/s, "
+            f"starting with a joint move to {np.round(poses[0].joints, 3).tolist()} rad",
+            f"take {images} at each pose and write {args.out}"], args.yes)
         # URArm checks every target against the limits itself, the plate's TCP included.
         arm = URArm.from_config(cell, cell.tools.plate.flange_from_tcp)
         with arm:
