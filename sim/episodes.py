@@ -113,18 +113,35 @@ def blame(result: dict[str, Any]) -> str | None:
     return STAGE_OF_REASON.get(result.get("failure") or "", "error")
 
 
+def outcome_of(result: dict[str, Any]) -> str:
+    """"grasped", "refused" or "failed" (results written before ``outcome`` existed: a
+    success was grasped, anything else counted as failed)."""
+    return result.get("outcome") or ("grasped" if result.get("success") else "failed")
+
+
+def _rate(k: int, n: int) -> str:
+    lo, hi = wilson_interval(k, n)
+    return f"{k}/{n} = {100 * k / max(n, 1):.1f} % (95 % interval {100 * lo:.1f}-{100 * hi:.1f} %)"
+
+
 def summarize(results: list[dict[str, Any]], wall_s: float | None = None) -> str:
-    """Success rate with a 95 % interval, failure reasons, error percentiles, timings."""
+    """Grasped, refused (nothing touched the tape: safe) and failed (acted and did not take
+    it: the worst outcome), each with a 95 % interval and its reasons; error percentiles;
+    timings; the same per camera count."""
     n = len(results)
-    ok = sum(1 for r in results if r.get("success"))
-    lo, hi = wilson_interval(ok, n)
-    lines = [f"episodes {n}   success {ok}/{n} = {100 * ok / max(n, 1):.1f} %"
-             f"   (95 % interval {100 * lo:.1f}-{100 * hi:.1f} %)"]
-    reasons = Counter(r.get("failure") or "?" for r in results if not r.get("success"))
-    if reasons:
-        lines.append("failures: " + ", ".join(f"{k} x{v}" for k, v in reasons.most_common()))
-        stages = Counter(blame(r) for r in results if not r.get("success"))
-        lines.append("blamed on: " + ", ".join(f"{k} x{v}" for k, v in stages.most_common())
+    lines = [f"episodes {n}"]
+    for outcome in ("grasped", "refused", "failed"):
+        sub = [r for r in results if outcome_of(r) == outcome]
+        line = f"  {outcome:<8} {_rate(len(sub), n)}"
+        if outcome != "grasped" and sub:
+            reasons = Counter(f"{r.get('failure') or '?'}" + (f" ({r['verdict']})" if r.get("verdict") not in (None, "ok")
+                                                              else "") for r in sub)
+            line += "   " + ", ".join(f"{k} x{v}" for k, v in reasons.most_common())
+        lines.append(line)
+    failed = [r for r in results if not r.get("success")]
+    if failed:
+        stages = Counter(blame(r) for r in failed)
+        lines.append("not grasped, blamed on: " + ", ".join(f"{k} x{v}" for k, v in stages.most_common())
                      + f"  (estimator: tip error > {BLAME_TIP_ERROR_MM:g} mm or estimate rejected)")
     tip = [r["tip_error_mm"] for r in results if r.get("tip_error_mm") is not None]
     nrm = [r["normal_error_deg"] for r in results if r.get("normal_error_deg") is not None]
@@ -141,8 +158,9 @@ def summarize(results: list[dict[str, Any]], wall_s: float | None = None) -> str
         lines.append(f"wall time {wall_s:.1f} s for this run")
     for cams in sorted({r.get("cameras") for r in results if r.get("cameras")}):
         sub = [r for r in results if r.get("cameras") == cams]
-        k = sum(1 for r in sub if r.get("success"))
-        lines.append(f"  {cams} cameras: {k}/{len(sub)} = {100 * k / len(sub):.1f} %")
+        counts = Counter(outcome_of(r) for r in sub)
+        lines.append(f"  {cams} cameras: grasped {_rate(counts['grasped'], len(sub))}, refused {counts['refused']}, "
+                     f"failed {counts['failed']}")
     return "\n".join(lines)
 
 

@@ -109,8 +109,20 @@ def test_runner_skips_done_seeds_and_survives_a_torn_line(tmp_path, capsys):
     assert calls == [0, 1, 2, 3, 4, 5][:3] + [3, 4, 5]
     assert [r["seed"] for r in results] == [0, 1, 2, 3, 4, 5]
     text = summarize(results)
-    assert "success 4/6" in text and "missed x2" in text
+    assert "grasped  4/6" in text and "missed x2" in text
     assert "tip error mm:     median 0.25" in text
+
+
+def test_summary_tells_refusals_from_failures():
+    results = [{"seed": s, "cameras": 2, "success": True, "outcome": "grasped"} for s in range(7)]
+    results += [{"seed": 7, "cameras": 2, "success": False, "outcome": "refused", "verdict": "hidden",
+                 "failure": "estimate rejected"},
+                {"seed": 8, "cameras": 2, "success": False, "outcome": "failed", "verdict": "ok", "failure": "missed"}]
+    text = summarize(results)
+    assert "grasped  7/9 = 77.8 %" in text
+    assert "refused  1/9" in text and "estimate rejected (hidden) x1" in text
+    assert "failed   1/9" in text and "missed x1" in text
+    assert "95 % interval" in text
 
 
 def test_results_file_lines_are_whole_json(tmp_path):
