@@ -149,8 +149,11 @@ def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: S
             continue
         ow, mw = o[a0:a1, b0:b1], m[a0:a1, b0:b1]
         xor = float(cv2.countNonZero(cv2.bitwise_xor(ow, mw)))
-        length = min(_outline(ow)[1], _outline(mw)[1]) if ow.any() and mw.any() else 0.0
-        out[k] = xor / max(length, 1.0)
+        # Over the longer outline, and at least the window's width: a silhouette seen
+        # edge-on, a line of a pixel or two that segmentation breaks up, has almost no
+        # outline to divide by.
+        length = max(_outline(ow)[1] if ow.any() else 0.0, _outline(mw)[1] if mw.any() else 0.0, 2.0 * r)
+        out[k] = xor / length
     return out
 
 
