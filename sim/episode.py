@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.estimator import Verdict, estimate
+from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
 from tapecell.estimator.metrics import errors
@@ -96,6 +96,12 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             est = estimate(capture, callback=callback)
             times["estimate"] += est.time_s
             doc["recaptured"] = True
+        if est.verdict is Verdict.AMBIGUOUS and est.alternatives:
+            # Two shapes explain the views: the needle, which the cell carries for this,
+            # touches each hypothesis' tip; the one it confirms (and only one) is kept.
+            t1 = time.perf_counter()
+            est, doc["probed"] = resolve_by_probing(cell, sim_arm, est, capture.tape.width)
+            times["probe"] = time.perf_counter() - t1
         doc["verdict"] = est.verdict.value
         doc["tip_views"] = int(est.tip_views)
         if est.verdict_reason:
@@ -149,6 +155,68 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             rec.log_result(stream, {k: v for k, v in doc.items() if not isinstance(v, dict)})
             rec.close_recording(stream)
             doc["recording"] = Path(recording).name
+
+
+PROBE_CONFIRM_M = 0.004
+"""A hypothesis is confirmed when the needle, sent along its tip's normal, touches tape
+within this distance of the point it aimed at [m], ..."""
+PROBE_MARGIN_M = 0.0015
+"""... and at least this much closer than any other hypothesis' touch [m]."""
+
+
+def resolve_by_probing(cell, sim_arm, est, width: float):
+    """Probe the tips of an ambiguous estimate and of its alternatives with the needle.
+    Returns (the estimate to act on, with verdict "ok" when exactly one hypothesis was
+    confirmed, else unchanged; per hypothesis the distance [mm] from the aimed point to
+    the touched one, None where nothing was touched). The gripper is remounted and opened
+    afterwards."""
+    from tapecell.cell.probe import ProbeError, ProbeParams, approach_normal, tape_points
+    from .prober import SimProber
+
+    params = ProbeParams()
+    hypotheses = [(est.tip_position, est.tip_rotation, None)]
+    hypotheses += [(a.tip_position, a.tip_rotation, a) for a in est.alternatives]
+    sim_arm.select_tool("needle")
+    prober = SimProber(cell, sim_arm, params)
+    found = []
+    try:
+        for k, (tip, R, _) in enumerate(hypotheses):
+            target = tape_points(tip, R, width, params.inset)["tip"]
+            normal = approach_normal(target, R[:, 2], -np.asarray(target))
+            try:
+                touched = prober.probe(f"hypothesis {k}", target, normal)
+                found.append(float(np.linalg.norm(touched.position - target)))
+            except Exception as e:    # noqa: BLE001 - an unreachable hypothesis is simply not confirmed
+                if isinstance(e, ProbeError) or e.__class__.__name__ in ("IKError", "SimArmError"):
+                    found.append(None)
+                    continue
+                raise
+    finally:
+        sim_arm.park()
+        sim_arm.select_tool("gripper")
+        sim_arm.open_gripper()
+    report = [None if d is None else round(1e3 * d, 2) for d in found]
+    order = sorted((d, k) for k, d in enumerate(found) if d is not None)
+    # The closest touch confirms its hypothesis when it is close enough and clearly closer
+    # than any other's (neighbouring hypotheses may both lie near the tape).
+    if not order or order[0][0] > PROBE_CONFIRM_M or (len(order) > 1 and order[1][0] < order[0][0] + PROBE_MARGIN_M):
+        return est, report
+    best = order[0][1]
+    tip, R, alt = hypotheses[best]
+    reason = f"hypothesis {best} confirmed by the needle ({1e3 * order[0][0]:.1f} mm from its tip)"
+    if alt is None:
+        return dataclasses.replace(est, verdict=Verdict.OK, verdict_reason=reason), report
+    shape = forward_kinematics(est_spec(cell), alt.angles)
+    return dataclasses.replace(est, angles=alt.angles, nodes=shape.nodes, tip_position=alt.tip_position,
+                               tip_rotation=alt.tip_rotation, cost=alt.cost, verdict=Verdict.OK,
+                               verdict_reason=reason), report
+
+
+def est_spec(cell):
+    """The estimator's tape model of ``cell`` (the plate chain written in its captures)."""
+    from tapecell.cell.config import tape_spec
+
+    return tape_spec(cell.config, cell.config.tape.estimator_plates)
 
 
 def _resolve(cfg, path: str) -> Path:

@@ -5,9 +5,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tapecell.cli.main import main
+from tapecell.estimator import estimate
 from tapecell.sim.episodes import EpisodeJob, append_result, load_results, run_episodes, summarize, wilson_interval
 from tapecell.cell.recording import read_recording
 from tapecell.cell.config import default_cell_path
@@ -173,3 +175,28 @@ def test_episode_estimates_with_the_cameras_file_the_cell_file_names(tmp_path, c
     ref = json.loads(capsys.readouterr().out)
     assert ref["tip_error_mm"] < 1.0
     assert doc["cost"] > ref["cost"] + 0.02 or doc["tip_error_mm"] > ref["tip_error_mm"] + 0.5
+
+
+def test_needle_confirms_one_hypothesis_of_an_ambiguous_estimate():
+    """An ambiguous estimate whose alternative is the true tape: the needle touches tape at
+    the alternative's tip and not at the wrong one's, and the alternative is acted on."""
+    import dataclasses
+
+    from tapecell.cell.config import load_cell_config
+    from tapecell.estimator import Alternative, Verdict
+    from tapecell.sim.arm import SimArm
+    from tapecell.sim.cell import SimCell
+    from tapecell.sim.episode import resolve_by_probing
+
+    cfg = load_cell_config()
+    with SimCell(cfg, seed=3, n_cameras=2, tool="gripper") as cell:
+        arm = SimArm(cell, tool="gripper")
+        est = estimate(cell.capture())
+        truth = cell.tape_tip_frame()
+        wrong = dataclasses.replace(est, tip_position=est.tip_position + np.array([0.03, -0.02, 0.0]),
+                                    verdict=Verdict.AMBIGUOUS,
+                                    alternatives=(Alternative(est.cost, truth[:3, 3], truth[:3, :3], est.angles),))
+        chosen, touched = resolve_by_probing(cell, arm, wrong, cfg.tape.width)
+    assert touched[0] is None or touched[0] > 4.0     # nothing (or something far) at the wrong tip
+    assert touched[1] is not None and touched[1] < 4.0
+    assert chosen.verdict is Verdict.OK and np.allclose(chosen.tip_position, truth[:3, 3])
