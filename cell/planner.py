@@ -50,7 +50,7 @@ from tapecell.estimator.geometry import is_rotation
 from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import ik_nearest
 from .poses import interpolate_pose6, invert, matrix_to_pose6, pose6_to_matrix
-from .safety import (SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
+from .safety import (KeepOutError, SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
                      check_points_flange)
 
 IK = Callable[[np.ndarray, np.ndarray], "np.ndarray | None"]
@@ -343,7 +343,7 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
         for a, b in zip(names[:-1], names[1:]):
             check_linear_move(limits, flange[a], flange[b], limits.max_tcp_speed, limits.max_tcp_accel, points)
     except SafetyError as e:
-        raise PlanRefused("collision" if "keep-out" in str(e) else "limits", str(e)) from None
+        raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits", str(e)) from None
     if tape is not None:
         _check_fingers_clear(tape, world_from_tcp["pregrasp"], world_from_tcp["grasp"], gripper)
     q_pre = ik(pose6_to_matrix(flange["pregrasp"]), q_ref)
@@ -355,7 +355,7 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
         try:
             check_joint_move(limits, q_ref, q_pre, limits.max_joint_speed, limits.max_joint_accel, points)
         except SafetyError as e:
-            raise PlanRefused("collision" if "keep-out" in str(e) else "limits",
+            raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits",
                               f"joint move to the pre-grasp pose: {e}") from None
     q = {"pregrasp": q_pre}
     for a, b in zip(names[:-1], names[1:]):

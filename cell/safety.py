@@ -33,6 +33,10 @@ class SafetyError(TaskFailed):
     the task cannot be done within the limits)."""
 
 
+class KeepOutError(SafetyError):
+    """A motion would take a check point into the keep-out box around the part."""
+
+
 @dataclass(frozen=True, eq=False)
 class SafetyLimits:
     """The cell's limits. Boxes are axis-aligned in the base frame (= world) [m].
@@ -143,7 +147,7 @@ def _check_box_path(limits: SafetyLimits, paths: np.ndarray, labels: list[str], 
             raise SafetyError(f"{motion}: the {label} passes {_fmt(p)} m, outside the workspace box")
         if np.any(hits[:, j]):
             p = paths[np.argmax(hits[:, j]) + 1, j]
-            raise SafetyError(f"{motion}: the {label} would enter the keep-out box around the part "
+            raise KeepOutError(f"{motion}: the {label} would enter the keep-out box around the part "
                               f"{_fmt(limits.keepout_min)}..{_fmt(limits.keepout_max)} near {_fmt(p)} m")
 
 
@@ -200,7 +204,7 @@ def check_joint_move(limits: SafetyLimits, q_start: Any, q_target: Any, speed: f
     wrist = np.array(wrist_paths)
     for j, label in enumerate(("wrist 2 centre", "wrist 3 centre")):
         if np.any(segments_hit_box(wrist[:-1, j], wrist[1:, j], limits.keepout_min, limits.keepout_max)):
-            raise SafetyError(f"joint move: the {label} would enter the keep-out box around the part")
+            raise KeepOutError(f"joint move: the {label} would enter the keep-out box around the part")
 
 
 class SafeArm(Arm):

@@ -26,6 +26,10 @@ class SimArmError(TaskFailed):
     """A simulated move was refused or did not arrive."""
 
 
+class TargetNotReached(SimArmError):
+    """The simulated arm stopped short of its target (as a real arm's protective stop)."""
+
+
 def _joint_target(q) -> np.ndarray:
     q = np.asarray(q, float)
     if q.shape != (6,) or not np.all(np.isfinite(q)):
@@ -205,7 +209,7 @@ class SimArm:
                 return self.joints()
             self.cell.step(1)
         err = np.abs(d.qpos[self.cell.arm_qadr] - q).max()
-        raise SimArmError(f"the simulated arm did not reach its target (joint error {err:.4f} rad after {settle_s} s)")
+        raise TargetNotReached(f"the simulated arm did not reach its target (joint error {err:.4f} rad after {settle_s} s)")
 
     def _move_fingers(self, target: float, settle_s: float) -> float:
         d = self.cell.data

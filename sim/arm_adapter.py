@@ -67,7 +67,7 @@ class SimArmAdapter(Arm):
         self._hold()
 
     def _guarded(self, move, what: str) -> None:
-        from .arm import SimArmError
+        from .arm import SimArmError, TargetNotReached
         from .ur5e import IKError
 
         if self._protective:
@@ -76,11 +76,11 @@ class SimArmAdapter(Arm):
             move()
         except IKError as e:
             raise ArmError(f"{self.name}: {what}: {e}") from None
+        except TargetNotReached as e:
+            self._protective = True
+            self._hold()
+            raise ProtectiveStopError(f"{self.name} stopped during {what}: {e}") from None
         except SimArmError as e:
-            if "did not reach" in str(e):
-                self._protective = True
-                self._hold()
-                raise ProtectiveStopError(f"{self.name} stopped during {what}: {e}") from None
             raise ArmError(f"{self.name}: {what}: {e}") from None
 
     def _move_linear(self, pose: np.ndarray, speed: float, acceleration: float) -> None:

@@ -171,7 +171,9 @@ def resolve_by_probing(cell, sim_arm, est, width: float):
     the touched one, None where nothing was touched). The gripper is remounted and opened
     afterwards."""
     from tapecell.cell.probe import ProbeError, ProbeParams, approach_normal, tape_points
+    from .arm import SimArmError
     from .prober import SimProber
+    from .ur5e import IKError
 
     params = ProbeParams()
     hypotheses = [(est.tip_position, est.tip_rotation, None)]
@@ -187,7 +189,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float):
                 touched = prober.probe(f"hypothesis {k}", target, normal)
                 found.append(float(np.linalg.norm(touched.position - target)))
             except Exception as e:    # noqa: BLE001 - an unreachable hypothesis is simply not confirmed
-                if isinstance(e, ProbeError) or e.__class__.__name__ in ("IKError", "SimArmError"):
+                if isinstance(e, (ProbeError, IKError, SimArmError)):
                     found.append(None)
                     continue
                 raise

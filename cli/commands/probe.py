@@ -47,7 +47,9 @@ def probe_sim(cell, seed: int, n_cameras: int, log=print) -> dict:
     """Capture, estimate, probe; returns a dict with measured points and the errors [m]."""
     from tapecell.estimator import estimate
     from tapecell.sim.arm import SimArm
+    from tapecell.sim.arm import SimArmError
     from tapecell.sim.prober import SimProber
+    from tapecell.sim.ur5e import IKError
     from tapecell.sim.cell import SimCell
 
     with SimCell(cell, seed=seed, n_cameras=n_cameras, tool="needle") as sim:
@@ -67,7 +69,7 @@ def probe_sim(cell, seed: int, n_cameras: int, log=print) -> dict:
             try:
                 points.append(prober.probe(label, targets[label], normal))
             except Exception as e:    # noqa: BLE001 - one unreachable point must not lose the others
-                if isinstance(e, ProbeError) or e.__class__.__name__ in ("IKError", "SimArmError"):
+                if isinstance(e, (ProbeError, IKError, SimArmError)):
                     log(f"{label}: not probed ({e})")
                     continue
                 raise
