@@ -85,8 +85,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         callback = rec.fit_logger(stream, capture) if stream is not None else None
         est = estimate(capture, callback=callback)
         times["estimate"] = est.time_s
-        if est.verdict is Verdict.HIDDEN and any(v.ignore is not None and v.ignore.any() for v in capture.views):
-            # The arm hides the tape's end: park it out of every view and look again.
+        if not est.actionable and any(v.ignore is not None and v.ignore.any() for v in capture.views):
+            # The arm hides part of the tape: park it out of every view and look again.
             t1 = time.perf_counter()
             sim_arm.park()
             capture = cell.capture(rgb=stream is not None)
@@ -160,6 +160,9 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
 PROBE_CONFIRM_M = 0.004
 """A hypothesis is confirmed when the needle, sent along its tip's normal, touches tape
 within this distance of the point it aimed at [m], ..."""
+PROBE_BEYOND_M = 0.006
+"""Where several hypotheses are touched, the needle also probes this far beyond each one's
+end along the tape [m]: tape there means that end is not the tape's."""
 PROBE_MARGIN_M = 0.0015
 """... and at least this much closer than any other hypothesis' touch [m]."""
 
@@ -193,6 +196,20 @@ def resolve_by_probing(cell, sim_arm, est, width: float):
                     found.append(None)
                     continue
                 raise
+        # A hypothesis whose "tip" lies on the tape's body touches tape too: where several
+        # do, the needle also goes a little beyond each one's end, where the true end
+        # finds nothing.
+        near = [k for k, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
+        if len(near) > 1:
+            for k in near:
+                tip, R, _ = hypotheses[k]
+                beyond = tip + PROBE_BEYOND_M * R[:, 0]
+                try:
+                    prober.probe(f"beyond hypothesis {k}", beyond, approach_normal(beyond, R[:, 2], -beyond))
+                    found[k] = None          # tape beyond its end: not the end
+                except Exception as e:    # noqa: BLE001 - nothing touched (or unreachable): its end stands
+                    if not isinstance(e, (ProbeError, IKError, SimArmError)):
+                        raise
     finally:
         sim_arm.park()
         sim_arm.select_tool("gripper")
