@@ -89,6 +89,9 @@ WIDE_OFFSET_PX = 1.5
 """... or when a view's mean boundary distance (its XOR over its outline length) is above
 this [px]: a view the first search's winner does not explain (about 1 in 10 good fits)."""
 WIDE_BEAM = 8
+THOROUGH_BEAM = 24
+"""Partial chains kept per node in the second look an estimate that is not "ok" gets (see
+:func:`estimate`)."""
 """Partial chains kept per node in the wide search."""
 WIDE_VARIANTS = True
 WIDE_GAIN = 0.85
@@ -1064,7 +1067,7 @@ def _variants(angles: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def fit_default(capture: Capture, callback: Callback | None = None):
+def fit_default(capture: Capture, callback: Callback | None = None, thorough: bool = False):
     """Fit by the project's method; returns (angles, trace, evaluations, fallback) where
     trace holds the winning candidate's angles after each local-stage iteration, and
     fallback (with the strip stage, else None) is (the plate fit's eq.-11 cost, [functions
@@ -1086,13 +1089,14 @@ def fit_default(capture: Capture, callback: Callback | None = None):
     if c2 < cost:
         angles, trace, cost = a2, t2, c2
     worst_px = max(c * f.target.area / f.outline_px for c, f in zip(evaluator.view_costs(chain.quads(angles)[0]), fields))
-    if cost > WIDE_COST or worst_px > WIDE_OFFSET_PX:
+    if thorough or cost > WIDE_COST or worst_px > WIDE_OFFSET_PX:
         # A poor fit: only these pay for a wider search (a finer, larger beam and the
         # other branches next to the winner); it replaces the first result only when its
         # silhouette cost is clearly lower.
         parts = [_variants(angles)] if WIDE_VARIANTS else []
         if WIDE_BEAM:
-            parts.append(np.array(_beam_search(capture.tape, fields, _WIDE_GRID, WIDE_BEAM)))
+            parts.append(np.array(_beam_search(capture.tape, fields, _WIDE_GRID,
+                                               THOROUGH_BEAM if thorough else WIDE_BEAM)))
         wide = np.concatenate(parts)
         a2, t2, c2 = _refine(chain, fields, wide, silhouette_costs, pool)
         if c2 < WIDE_GAIN * cost:
@@ -1213,7 +1217,8 @@ def _garbage(capture: Capture, faults: list, method: str, start: float) -> Estim
                     view_offsets_px=np.full(len(capture.views), np.inf))
 
 
-def estimate(capture: Capture, method: str = "default", callback: Callback | None = None) -> Estimate:
+def estimate(capture: Capture, method: str = "default", callback: Callback | None = None,
+             thorough: bool = False) -> Estimate:
     """Fit the plate chain to ``capture``'s silhouettes.
 
     method: "default" (ours) or "paper" (the reference reproduction).
@@ -1238,7 +1243,7 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         return _garbage(capture, faults, method, start)
     fallback, hypotheses, tip = None, [], None
     if method == "default":
-        angles, trace, evaluations, fallback, hypotheses, tip = fit_default(capture)
+        angles, trace, evaluations, fallback, hypotheses, tip = fit_default(capture, thorough=thorough)
     else:
         angles, history, evaluations = fit_paper(capture, callback)
     shape, view_costs, evaluator = _costed(capture, angles)
@@ -1267,6 +1272,14 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         if callback is not None:
             for k, (a, c) in enumerate(zip(trace, history), 1):
                 callback(k, c, a)
-    return Estimate(shape.nodes, angles, tip_position, tip_rotation, combine(view_costs),
-                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
-                    trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)
+    est = Estimate(shape.nodes, angles, tip_position, tip_rotation, combine(view_costs),
+                   view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
+                   trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)
+    if method == "default" and not thorough and verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS):
+        # Unsure: a second, more thorough look (a larger global search on the widest grid,
+        # always) before answering. Its answer stands when it is "ok" (judged afresh) or
+        # explains the views better; the time of both counts.
+        second = estimate(capture, method, thorough=True)
+        chosen = second if second.actionable or second.cost < est.cost else est
+        return dataclasses.replace(chosen, time_s=est.time_s + second.time_s)
+    return est

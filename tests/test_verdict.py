@@ -131,5 +131,5 @@ def test_curl_seen_from_one_direction_is_ambiguous():
                      np.zeros(5), R, -R @ center)
         views.append(View(cam, render_view(cam, shape)))
     est = estimate(Capture(spec, views, Truth(np.arange(6) * 0.03, shape.nodes, shape.frames[-1])))
+    # Either reason: the end's depth is open, or a distinct shape explains the views as well.
     assert est.verdict is Verdict.AMBIGUOUS, est.verdict_reason
-    assert "depth" in est.verdict_reason
