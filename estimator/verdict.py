@@ -38,7 +38,7 @@ from .scene import Box
 
 POOR_OFFSET_PX = 3.0
 """Mean boundary distance [px] in a view above which the fit does not explain it."""
-END_OFFSET_PX = 2.0
+END_OFFSET_PX = 2.5
 """Mean boundary distance [px] around the tip's projection above which a view that sees the
 free end does not explain it: the end itself is wrong (a curl the model did not follow)
 however well the rest fits."""
