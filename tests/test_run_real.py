@@ -208,3 +208,20 @@ def test_refused_verdict_moves_nothing(real_like, monkeypatch, no_robot, capsys)
     assert code == 1 and err.count("\n") == 1
     assert "verdict is ambiguous (a distinct shape explains the views as well): a robot must not act on it" in err
     assert "grasp plan" not in out
+
+
+def test_real_cell_path_never_loads_the_simulator(real_like, tmp_path):
+    """`tapecell run --images ...` (the real cell's path) imports neither MuJoCo nor
+    tapecell.sim: checked on the interpreter's own import log (-X importtime)."""
+    import subprocess
+    import sys
+
+    images, cameras = real_like
+    env = {**__import__("os").environ, "PYTHONPROFILEIMPORTTIME": "1"}
+    r = subprocess.run([sys.executable, "-m", "tapecell.cli.main", "run", "--config", str(default_cell_path()),
+                        "--cameras", str(cameras), "--images", str(images)],
+                       capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
+    imported = [line.rsplit("|", 1)[-1].strip() for line in r.stderr.splitlines() if line.startswith("import time:")]
+    assert any(m.startswith("tapecell.estimator") for m in imported), r.stderr[-2000:]
+    assert any(m.startswith("tapecell.cell.planner") for m in imported)
+    assert not [m for m in imported if m.split(".")[0] == "mujoco" or m.startswith("tapecell.sim")]
