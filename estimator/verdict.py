@@ -12,7 +12,9 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
 - Do two cameras see the free end? The estimate's last ``TIP_SPAN_M`` of centre line and
   its tip corners are projected into each view; a view sees the free end when at least
   ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore mask and
-  in front of every scene box. Fewer than two such views: ``hidden``.
+  in front of every scene box, and the end stands against the background there (the tip
+  edge within ``EDGE_PX`` of observed background: a tip over the tape's own body is not
+  located by that silhouette). Fewer than two such views: ``hidden``.
 - Can the end's depth be told? The cameras that see it must look at it from directions at
   least ``MIN_PARALLAX_DEG`` apart, else ``ambiguous``.
 - Does a distinct shape explain the views nearly as well? An alternative whose tip is more
@@ -45,6 +47,10 @@ however well the rest fits."""
 END_WINDOW_PX = 20
 """Half size of the window around the tip's projection in which the free end's own fit is
 judged [px]."""
+EDGE_PX = 3
+"""A view sees the free end only where the end stands against the background: the tip edge
+(its two corners and its middle) must lie within this many pixels of observed background
+(a tip in front of or behind the tape's own body is not located by that silhouette)."""
 TIP_SPAN_M = 0.005
 """Length of the free end [m] whose visibility decides whether a camera sees it."""
 TIP_SEEN_FRACTION = 0.5
@@ -157,6 +163,24 @@ def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: S
     return out
 
 
+def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray) -> bool:
+    """Do most of ``points`` (k, 3) project within EDGE_PX of observed background (the crop's
+    outside counts as background)?"""
+    uv = view.camera.project(points)
+    h, w = observed.shape
+    hits = 0
+    for u, v in uv:
+        if not (np.isfinite(u) and np.isfinite(v)):
+            continue
+        x, y = int(round(u)) - origin[0], int(round(v)) - origin[1]
+        x0, x1, y0, y1 = x - EDGE_PX, x + EDGE_PX + 1, y - EDGE_PX, y + EDGE_PX + 1
+        if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
+            hits += 1
+            continue
+        hits += bool((observed[y0:y1, x0:x1] == 0).any())
+    return hits > len(points) // 2
+
+
 def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]) -> list[bool]:
     """Per view: does it see at least TIP_SEEN_FRACTION of ``points`` (k, 3)?"""
     out = []
@@ -185,6 +209,8 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     areas, lengths = sizes(observed)
     offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
+    edge = tip_position + np.outer([-0.5, 0.0, 0.5], width * tip_rotation[:, 1])
+    seen = [s_ and _on_outline(v, o, xy, edge) for s_, v, o, xy in zip(seen, views, observed, origins)]
     ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(seen), best_cost, tip_position, alternatives)
     parallax = _parallax_deg([v.camera.center for v, s_ in zip(views, seen) if s_], tip_position)

@@ -96,9 +96,10 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             est = estimate(capture, callback=callback)
             times["estimate"] += est.time_s
             doc["recaptured"] = True
-        if est.verdict is Verdict.AMBIGUOUS and est.alternatives:
-            # Two shapes explain the views: the needle, which the cell carries for this,
-            # touches each hypothesis' tip; the one it confirms (and only one) is kept.
+        if est.verdict is Verdict.HIDDEN or (est.verdict is Verdict.AMBIGUOUS and est.alternatives):
+            # Two shapes explain the views, or too few cameras see the end: the needle,
+            # which the cell carries for this, touches each hypothesis' tip (and goes past
+            # it); the one it confirms (and only one) is kept.
             t1 = time.perf_counter()
             est, doc["probed"] = resolve_by_probing(cell, sim_arm, est, capture.tape.width)
             times["probe"] = time.perf_counter() - t1
@@ -161,14 +162,15 @@ PROBE_CONFIRM_M = 0.004
 """A hypothesis is confirmed when the needle, sent along its tip's normal, touches tape
 within this distance of the point it aimed at [m], ..."""
 PROBE_BEYOND_M = 0.006
-"""Where several hypotheses are touched, the needle also probes this far beyond each one's
-end along the tape [m]: tape there means that end is not the tape's."""
+"""Past every touched hypothesis' tip the needle also probes this far beyond its end along
+the tape [m]: tape there means that end is not the tape's."""
 PROBE_MARGIN_M = 0.0015
 """... and at least this much closer than any other hypothesis' touch [m]."""
 
 
 def resolve_by_probing(cell, sim_arm, est, width: float):
-    """Probe the tips of an ambiguous estimate and of its alternatives with the needle.
+    """Probe the tips of an estimate that is not ok (ambiguous or hidden) and of its
+    alternatives with the needle, and past each touched tip (tape there: not the end).
     Returns (the estimate to act on, with verdict "ok" when exactly one hypothesis was
     confirmed, else unchanged; per hypothesis the distance [mm] from the aimed point to
     the touched one, None where nothing was touched). The gripper is remounted and opened
@@ -196,11 +198,10 @@ def resolve_by_probing(cell, sim_arm, est, width: float):
                     found.append(None)
                     continue
                 raise
-        # A hypothesis whose "tip" lies on the tape's body touches tape too: where several
-        # do, the needle also goes a little beyond each one's end, where the true end
-        # finds nothing.
+        # A hypothesis whose "tip" lies on the tape's body touches tape too: the needle
+        # also goes a little beyond each touched one's end, where the true end finds nothing.
         near = [k for k, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
-        if len(near) > 1:
+        if near:
             for k in near:
                 tip, R, _ = hypotheses[k]
                 beyond = tip + PROBE_BEYOND_M * R[:, 0]
