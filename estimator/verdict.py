@@ -47,10 +47,11 @@ however well the rest fits."""
 END_WINDOW_PX = 20
 """Half size of the window around the tip's projection in which the free end's own fit is
 judged [px]."""
-EDGE_PX = 3
+EDGE_PX = 10
 """A view sees the free end only where the end stands against the background: the tip edge
-(its two corners and its middle) must lie within this many pixels of observed background
-(a tip in front of or behind the tape's own body is not located by that silhouette)."""
+(its two corners and its middle) must lie within this many pixels (~4 mm at the tape) of
+observed background (a tip in front of or behind the tape's own body is not located by
+that silhouette; 3 px refused 7 of 60 good sim fits whose estimated edge was a few px in)."""
 TIP_SPAN_M = 0.005
 """Length of the free end [m] whose visibility decides whether a camera sees it."""
 TIP_SEEN_FRACTION = 0.5
