@@ -185,32 +185,36 @@ def resolve_by_probing(cell, sim_arm, est, width: float):
     hypotheses += [(a.tip_position, a.tip_rotation, a) for a in est.alternatives]
     sim_arm.select_tool("needle")
     prober = SimProber(cell, sim_arm, params)
+    def touch(label: str, target: np.ndarray, R: np.ndarray):
+        """Distance [m] from ``target`` to where the needle touched tape, approaching along
+        the tape's normal from the robot's side, else from the other side when that side
+        is blocked (the needle's shaft already touching the tape at the start, or no
+        reach); None when nothing was touched."""
+        first = approach_normal(target, R[:, 2], -np.asarray(target))
+        for normal in (first, -first):
+            try:
+                d = float(np.linalg.norm(prober.probe(label, target, normal).position - target))
+            except Exception as e:    # noqa: BLE001 - an unreachable side is simply not a touch
+                if not isinstance(e, (ProbeError, IKError, SimArmError)):
+                    raise
+                continue
+            if d < 0.8 * params.standoff:
+                return d
+        return None
+
     found = []
     try:
         for k, (tip, R, _) in enumerate(hypotheses):
-            target = tape_points(tip, R, width, params.inset)["tip"]
-            normal = approach_normal(target, R[:, 2], -np.asarray(target))
-            try:
-                touched = prober.probe(f"hypothesis {k}", target, normal)
-                found.append(float(np.linalg.norm(touched.position - target)))
-            except Exception as e:    # noqa: BLE001 - an unreachable hypothesis is simply not confirmed
-                if isinstance(e, (ProbeError, IKError, SimArmError)):
-                    found.append(None)
-                    continue
-                raise
+            found.append(touch(f"hypothesis {k}", tape_points(tip, R, width, params.inset)["tip"], R))
         # A hypothesis whose "tip" lies on the tape's body touches tape too: the needle
         # also goes a little beyond each touched one's end, where the true end finds nothing.
         near = [k for k, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
         if near:
             for k in near:
                 tip, R, _ = hypotheses[k]
-                beyond = tip + PROBE_BEYOND_M * R[:, 0]
-                try:
-                    prober.probe(f"beyond hypothesis {k}", beyond, approach_normal(beyond, R[:, 2], -beyond))
+                past = touch(f"beyond hypothesis {k}", tip + PROBE_BEYOND_M * R[:, 0], R)
+                if past is not None and past <= PROBE_CONFIRM_M:
                     found[k] = None          # tape beyond its end: not the end
-                except Exception as e:    # noqa: BLE001 - nothing touched (or unreachable): its end stands
-                    if not isinstance(e, (ProbeError, IKError, SimArmError)):
-                        raise
     finally:
         sim_arm.park()
         sim_arm.select_tool("gripper")
