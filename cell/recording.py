@@ -77,6 +77,7 @@ from tapecell.estimator.tape import TapeSpec, forward_kinematics
 # Class ids of the segmentation overlays (AnnotationContext on each camera's image).
 CLASS_MASK, CLASS_MODEL, CLASS_IGNORE = 1, 2, 3
 _ANNOTATIONS = [
+    (0, "background", (0, 0, 0, 0)),            # transparent: the image shows through
     (CLASS_MASK, "observed", (255, 200, 0)),
     (CLASS_MODEL, "model", (0, 160, 255)),
     (CLASS_IGNORE, "ignored", (120, 120, 120)),

@@ -82,6 +82,10 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         times["capture"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
+        if stream is not None:
+            # Everything on the timeline the viewer opens on (the images, masks, estimate
+            # and truth were on log_time only, invisible there).
+            rec.set_sim_time(stream, cell.data.time)
         callback = rec.fit_logger(stream, capture) if stream is not None else None
         est = estimate(capture, callback=callback)
         times["estimate"] = est.time_s
@@ -127,6 +131,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             return doc
         times["plan"] = time.perf_counter() - t0
         if stream is not None:
+            rec.set_sim_time(stream, cell.data.time)
             rec.log_plan(stream, plan.tool_waypoints())
 
         t0 = time.perf_counter()

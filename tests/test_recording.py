@@ -184,8 +184,11 @@ def test_cameras_pose_and_intrinsics(recorded, scene):
         assert pinhole["Pinhole:resolution"][0] == [W, H]
         classes = {c["class_id"]: c["class_description"]["info"]["label"]
                    for c in pinhole["AnnotationContext:context"][0]}
-        assert classes == {rec.CLASS_MASK: "observed", rec.CLASS_MODEL: "model",
+        assert classes == {0: "background", rec.CLASS_MASK: "observed", rec.CLASS_MODEL: "model",
                            rec.CLASS_IGNORE: "ignored"}
+        # The background class is fully transparent: the camera image shows through.
+        background = next(c for c in pinhole["AnnotationContext:context"][0] if c["class_id"] == 0)
+        assert background["class_description"]["info"]["color"] & 0xFF == 0
 
 
 def test_images_read_back_pixel_exact(recorded, scene):
