@@ -27,12 +27,14 @@ RESULTS = "results.jsonl"
 @dataclass(frozen=True)
 class EpisodeJob:
     """What one worker runs: seed, number of cameras, where to write a recording (or None),
-    and the cell file (None = bundled)."""
+    the cell file (None = bundled), and whether to keep the recording only when the episode
+    did not grasp (a reviewer usually wants the failures)."""
 
     seed: int
     cameras: int
     recording: Path | None
     config: Path | None
+    failures_only: bool = False
 
 
 def load_results(path: Path) -> list[dict[str, Any]]:
@@ -193,12 +195,23 @@ class Progress:
 
 def _worker(job: EpisodeJob) -> dict[str, Any]:
     from .episode import run_episode_safely
-    return run_episode_safely(job.seed, job.cameras, job.recording, job.config)
+    doc = run_episode_safely(job.seed, job.cameras, job.recording, job.config)
+    if job.failures_only and doc.get("success") and job.recording is not None:
+        job.recording.unlink(missing_ok=True)
+        doc.pop("recording", None)
+    return doc
 
 
-def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, rrd_each: bool = False,
+RRD_MODES = ("all", "failures")
+
+
+def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, rrd: str | None = None,
                  config: Path | None = None, worker: Callable[[EpisodeJob], dict] = _worker) -> list[dict]:
-    """Run the episodes not yet in ``out/results.jsonl``; returns all results for these seeds."""
+    """Run the episodes not yet in ``out/results.jsonl``; returns all results for these seeds.
+    rrd: "all" writes OUT/episode-NNNN.rrd for every episode, "failures" keeps only those of
+    episodes that did not grasp, None none."""
+    if rrd not in (None,) + RRD_MODES:
+        raise TapecellError(f"--rrd must be one of {', '.join(RRD_MODES)}, got {rrd!r}")
     if jobs < 1:
         raise TapecellError(f"--jobs must be 1 or more, got {jobs}")
     out.mkdir(parents=True, exist_ok=True)
@@ -210,7 +223,8 @@ def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, r
     if len(todo) < len(seeds):
         print(f"{len(seeds) - len(todo)} of {len(seeds)} episodes already in {results_path}; "
               f"running {len(todo)}", file=sys.stderr)
-    job_list = [EpisodeJob(s, cameras, out / f"episode-{s:04d}.rrd" if rrd_each else None, config) for s in todo]
+    job_list = [EpisodeJob(s, cameras, out / f"episode-{s:04d}.rrd" if rrd else None, config, rrd == "failures")
+                for s in todo]
     progress = Progress(len(job_list))
     new = []
     if jobs == 1 or len(job_list) <= 1:

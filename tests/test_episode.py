@@ -230,3 +230,22 @@ def test_episode_recording_shows_its_content_on_opening(tmp_path):
         pytest.skip(f"the viewer could not start here: {r.stderr.strip()[-200:]}")
     bright = float((cv2.imread(str(png), cv2.IMREAD_GRAYSCALE) > 100).mean())
     assert bright > 0.06, f"only {100 * bright:.1f} % of the screen is bright"
+
+
+def test_campaign_keeps_only_the_failures_recordings(tmp_path, monkeypatch):
+    """--rrd failures: every episode records, and a grasped one's file is removed again."""
+    from tapecell.sim import episode as episode_module
+    from tapecell.sim.episodes import _worker
+
+    def fake(seed, cameras, recording, config):
+        recording.write_bytes(b"rrd")
+        ok = seed % 2 == 0
+        return {"format": "tape-episode/1", "seed": seed, "cameras": cameras, "success": ok,
+                "outcome": "grasped" if ok else "failed",
+                "recording": recording.name}
+
+    monkeypatch.setattr(episode_module, "run_episode_safely", fake)
+    out = tmp_path / "c"
+    results = run_episodes(range(4), 2, out, rrd="failures", worker=_worker)
+    assert sorted(p.name for p in out.glob("*.rrd")) == ["episode-0001.rrd", "episode-0003.rrd"]
+    assert [r.get("recording") for r in results] == [None, "episode-0001.rrd", None, "episode-0003.rrd"]

@@ -45,7 +45,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--jobs", type=positive_int, default=1, help="parallel worker processes (default 1)")
     p.add_argument("--cameras", type=_cameras, default=2, help="2 or 3 cameras (default 2)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="results folder")
-    p.add_argument("--rrd-each", action="store_true", help="write DIR/episode-NNNN.rrd for every episode")
+    p.add_argument("--rrd", choices=("all", "failures"), default=None,
+                   help="write DIR/episode-NNNN.rrd for every episode (all) or only for those that did not "
+                        "grasp (failures: what a reviewer usually wants)")
     p.add_argument("--config", type=Path, metavar="CELL.toml", help="cell file (default: the bundled one)")
     add_force(p)
     p.set_defaults(func=run_many)
@@ -82,6 +84,6 @@ def run_many(args: argparse.Namespace) -> int:
     config = args.config.resolve() if args.config else None
     t0 = time.perf_counter()
     results = run_episodes(range(args.seed, args.seed + args.n), args.cameras, args.out, args.jobs,
-                           args.rrd_each, config)
+                           args.rrd, config)
     print(summarize(results, time.perf_counter() - t0))
     return 0
