@@ -46,7 +46,7 @@ from .geometry import Camera, _distort
 from .result import Alternative, Estimate, Verdict
 from .silhouette import CostEvaluator, ViewTarget, combine, make_target, project_quads
 from .tape import TapeSpec, forward_kinematics, joint_rotations
-from .verdict import DISTINCT_TIP_M, assess, is_close_alternative, mask_fault
+from .verdict import DISTINCT_TIP_M, FOLD_DEG, assess, is_close_alternative, mask_fault
 
 Callback = Callable[[int, float, np.ndarray], None]
 
@@ -90,6 +90,7 @@ WIDE_OFFSET_PX = 1.5
 this [px]: a view the first search's winner does not explain (about 1 in 10 good fits)."""
 WIDE_BEAM = 8
 THOROUGH_BEAM = 24
+
 """Partial chains kept per node in the second look an estimate that is not "ok" gets (see
 :func:`estimate`)."""
 """Partial chains kept per node in the wide search."""
@@ -1275,7 +1276,12 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     est = Estimate(shape.nodes, angles, tip_position, tip_rotation, combine(view_costs),
                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
                    trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)
-    if method == "default" and not thorough and verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS):
+    folded = float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
+    if method == "default" and not thorough and verdict is Verdict.OK and folded:
+        # A fold: the same fit's more thorough look, whose alternatives are weighed afresh.
+        second = estimate(capture, method, thorough=True)
+        return dataclasses.replace(second, time_s=est.time_s + second.time_s)
+    if method == "default" and not thorough and verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN):
         # Unsure: a second, more thorough look (a larger global search on the widest grid,
         # always) before answering. Its answer stands when it is "ok" (judged afresh) or
         # explains the views better; the time of both counts.

@@ -52,6 +52,17 @@ EDGE_PX = 10
 (its two corners and its middle) must lie within this many pixels (~4 mm at the tape) of
 observed background (a tip in front of or behind the tape's own body is not located by
 that silhouette; 3 px refused 7 of 60 good sim fits whose estimated edge was a few px in)."""
+FOLD_DEG = 120.0
+"""A free end that turns back by more than this [deg] from the tape's first plate is folded
+back towards the body; an "ok" fit of a fold gets the estimator's thorough second look,
+whose wider search finds the shapes folded the other way (alternatives): where a fold's
+end meets the body's outline, a notch in a silhouette is as well the fold's edge with the
+end over the body (a wrong "ok" 16 mm off in an episode)."""
+BEYOND_M = (0.003, 0.006)
+"""Distances [m] past the tip, along its trunk, where a view that locates the end must be
+able to see: where the tape's continuation would be hidden by a scene box, lie on ignored
+pixels or leave the image, the silhouette may end at that occluder's edge, not at the tape's
+end (a wrong "ok" 13 mm off: a shell tape whose end went on behind the part)."""
 TIP_SPAN_M = 0.005
 """Length of the free end [m] whose visibility decides whether a camera sees it."""
 TIP_SEEN_FRACTION = 0.5
@@ -60,6 +71,21 @@ MIN_PARALLAX_DEG = 10.0
 """The cameras that see the free end must look at it from directions at least this far apart
 [deg] (the cell's are ~35 deg apart): from nearly one direction its depth is undetermined,
 and shapes whose tips lie anywhere along it explain the views alike (``ambiguous``)."""
+UNEXPLAINED_MARGIN_PX = 3
+"""Observed tape within this many pixels of the model's silhouette counts as explained (and
+model within it of observed tape as supported): calibration error of a few pixels."""
+UNEXPLAINED_PX = 30
+"""A region of observed tape the model does not explain, beyond the margin and reaching the
+tip's window, longer than this [px] (about 10 mm at the tape): the tape goes on past the
+model's end, such as an end seen edge-on as a thin sliver, which the mean boundary distance
+averages away (a wrong "ok" 60 mm off). 15 px refused good fits of curled ends, where an
+edge-on plate's thin line lies a few pixels off the observed one."""
+OVERSHOOT_PX = 60
+"""The same for model over background near the tip [px]: the model's end overshoots the
+tape. Larger: an edge-on end is a thin line whose offset of a few pixels leaves 40-50 px
+long slivers on good fits."""
+UNEXPLAINED_MIN_AREA_PX = 8
+"""Regions smaller than this [px] are segmentation speckles, not tape."""
 DISTINCT_TIP_M = 0.010
 """Tips further apart than this [m] make two shapes distinct hypotheses (formats.md)."""
 AMBIGUOUS_RATIO = 1.25
@@ -164,22 +190,72 @@ def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: S
     return out
 
 
+def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray) -> tuple[float, float]:
+    """(tape, model): the longest region [px] (its bounding box's longer side), among those
+    reaching within END_WINDOW_PX of the tip's projection ``tip_px`` (crop coordinates), of
+    observed tape farther than UNEXPLAINED_MARGIN_PX from the model's silhouette (the tape
+    goes on past the model's end), and of model farther than that from observed tape (the
+    model overshoots it). uint8 0/1 crops alike."""
+    out = [0.0, 0.0]
+    if not np.all(np.isfinite(tip_px)):
+        return out[0], out[1]
+    k = np.ones((2 * UNEXPLAINED_MARGIN_PX + 1,) * 2, np.uint8)
+    h, w = observed.shape
+    u, v = int(round(tip_px[0])), int(round(tip_px[1]))
+    r = END_WINDOW_PX
+    a0, a1, b0, b1 = max(0, v - r), min(h, v + r + 1), max(0, u - r), min(w, u + r + 1)
+    if a1 <= a0 or b1 <= b0:
+        return out[0], out[1]
+    for i, (a, b) in enumerate(((observed, model), (model, observed))):
+        extra = cv2.bitwise_and(a, cv2.bitwise_not(cv2.dilate(b, k)) & 1)
+        if cv2.countNonZero(extra[a0:a1, b0:b1]) == 0:
+            continue
+        _, labels, stats, _ = cv2.connectedComponentsWithStats(extra, connectivity=8)
+        for label in np.unique(labels[a0:a1, b0:b1]):
+            _, _, bw, bh, area = stats[label]
+            if label and area >= UNEXPLAINED_MIN_AREA_PX:
+                out[i] = max(out[i], float(max(bw, bh)))
+    return out[0], out[1]
+
+
 def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray) -> bool:
-    """Do most of ``points`` (k, 3) project within EDGE_PX of observed background (the crop's
-    outside counts as background)?"""
+    """Do the tip edge's ``points`` (3, 3: a corner, the middle, the other corner) project
+    within EDGE_PX of observed background (the crop's outside counts as background): the
+    middle and at least one corner? (A tape seen end-on puts its corners near the outline
+    and its middle inside the silhouette, where nothing locates the end.)"""
     uv = view.camera.project(points)
     h, w = observed.shape
-    hits = 0
+    hits = []
     for u, v in uv:
         if not (np.isfinite(u) and np.isfinite(v)):
+            hits.append(False)
             continue
         x, y = int(round(u)) - origin[0], int(round(v)) - origin[1]
         x0, x1, y0, y1 = x - EDGE_PX, x + EDGE_PX + 1, y - EDGE_PX, y + EDGE_PX + 1
         if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
-            hits += 1
+            hits.append(True)
             continue
-        hits += bool((observed[y0:y1, x0:x1] == 0).any())
-    return hits > len(points) // 2
+        hits.append(bool((observed[y0:y1, x0:x1] == 0).any()))
+    return hits[1] and (hits[0] or hits[2])
+
+
+def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.ndarray,
+                           tip_rotation: np.ndarray, width: float) -> bool:
+    """Would most points BEYOND_M past the tip edge (its middle and near its corners) be
+    seen by ``view``: in the image, not ignored, in front of every scene box?"""
+    across = np.outer([-0.4, 0.0, 0.4], width * tip_rotation[:, 1])
+    points = np.vstack([tip_position + d * tip_rotation[:, 0] + across for d in BEYOND_M])
+    cam = view.camera
+    uv = cam.project(points)
+    ok = np.all(np.isfinite(uv), axis=1) & (cam.to_camera(points)[:, 2] > 0)
+    u = np.where(ok, np.rint(uv[:, 0]), -1).astype(int)
+    v = np.where(ok, np.rint(uv[:, 1]), -1).astype(int)
+    ok &= (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    if view.ignore is not None:
+        ok[ok] &= ~view.ignore[v[ok], u[ok]]
+    if boxes:
+        ok &= ~hidden(cam.center, points, boxes)
+    return int(np.count_nonzero(ok)) > len(points) // 2
 
 
 def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]) -> list[bool]:
@@ -211,9 +287,21 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer([-0.5, 0.0, 0.5], width * tip_rotation[:, 1])
-    seen = [s_ and _on_outline(v, o, xy, edge) for s_, v, o, xy in zip(seen, views, observed, origins)]
+    seen = [s_ and _on_outline(v, o, xy, edge) and _continuation_visible(v, boxes, tip_position, tip_rotation, width)
+            for s_, v, o, xy in zip(seen, views, observed, origins)]
     ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(seen), best_cost, tip_position, alternatives)
+    if verdict is not Verdict.POOR_FIT:
+        for k, (v, o, m, xy) in enumerate(zip(views, observed, models, origins)):
+            if not seen[k]:
+                continue
+            tape, over = unexplained_px(o, m, v.camera.project(tip_position[None])[0] - np.asarray(xy))
+            if tape > UNEXPLAINED_PX or over > OVERSHOOT_PX:
+                verdict, reason = Verdict.POOR_FIT, (
+                    f"view {k} shows tape past the model's end over {tape:.0f} px (> {UNEXPLAINED_PX} px)"
+                    if tape > UNEXPLAINED_PX else
+                    f"view {k} shows the model's end over background over {over:.0f} px (> {OVERSHOOT_PX} px)")
+                break
     parallax = _parallax_deg([v.camera.center for v, s_ in zip(views, seen) if s_], tip_position)
     if verdict is Verdict.OK and parallax < MIN_PARALLAX_DEG:
         verdict, reason = Verdict.AMBIGUOUS, (f"the cameras that see the free end look at it from directions "

@@ -133,3 +133,82 @@ def test_curl_seen_from_one_direction_is_ambiguous():
     est = estimate(Capture(spec, views, Truth(np.arange(6) * 0.03, shape.nodes, shape.frames[-1])))
     # Either reason: the end's depth is open, or a distinct shape explains the views as well.
     assert est.verdict is Verdict.AMBIGUOUS, est.verdict_reason
+
+
+def test_unexplained_regions_near_the_tip():
+    """Tape going on past the model's end (a thin sliver, as an end seen edge-on) and model
+    over background are measured only where they reach the tip's window."""
+    from tapecell.estimator.verdict import unexplained_px
+
+    model = np.zeros((120, 200), np.uint8)
+    model[40:80, 20:100] = 1                      # the model ends at x = 100
+    observed = model.copy()
+    observed[58:60, 100:160] = 1                  # a 2-px sliver 60 px long past its end
+    tape, over = unexplained_px(observed, model, np.array([100.0, 59.0]))
+    assert 55 <= tape <= 60 and over == 0
+    # The same sliver seen from a tip far from it does not count.
+    assert unexplained_px(observed, model, np.array([20.0, 59.0])) == (0.0, 0.0)
+    # Swapped: the model overshoots the observed tape.
+    tape, over = unexplained_px(model, observed, np.array([100.0, 59.0]))
+    assert tape == 0 and 55 <= over <= 60
+    # Offsets within the margin (calibration error of a few pixels) are explained.
+    shifted = np.roll(model, 2, axis=1)
+    assert unexplained_px(shifted, model, np.array([100.0, 59.0])) == (0.0, 0.0)
+
+
+def test_tape_past_the_models_end_is_never_ok():
+    """One view shows the tape going on 60 px past where every 5-plate chain of its length
+    must end (a sliver, as an end seen edge-on): the estimate must not be "ok"."""
+    capture = make_capture(4101, SyntheticOptions(cameras=2))
+    v = capture.views[0]
+    tip = v.camera.project(capture.truth.points[-1:])[0]
+    back = v.camera.project(capture.truth.points[-5:-4])[0]
+    d = (tip - back) / np.linalg.norm(tip - back)
+    mask = v.mask.copy()
+    far = tip + 60 * d
+    cv2.line(mask.view(np.uint8), tuple(int(x) for x in np.rint(tip)), tuple(int(x) for x in np.rint(far)), 1, 2)
+    views = [View(v.camera, mask)] + list(capture.views[1:])
+    est = estimate(dataclasses.replace(capture, views=views))
+    assert est.verdict is not Verdict.OK, f"ok at {_tip_mm(capture, est):.1f} mm"
+
+
+def test_a_tape_seen_end_on_does_not_locate_its_tip():
+    """The tip edge's corners near the outline and its middle deep inside the silhouette (a
+    tape seen along its length): that view does not locate the end."""
+    from tapecell.estimator import Camera
+    from tapecell.estimator.verdict import _on_outline
+
+    cam = Camera("c", 200, 200, np.array([[100.0, 0, 100], [0, 100.0, 100], [0, 0, 1]]), np.zeros(5),
+                 np.eye(3), np.zeros(3))
+    observed = np.zeros((200, 200), np.uint8)
+    observed[60:140, 60:140] = 1
+    # Pixels (u, v) = 100 x / z + 100 at z = 1: u 65, 100, 135 on the row v = 100.
+    end_on = np.array([[-0.35, 0.0, 1.0], [0.0, 0.0, 1.0], [0.35, 0.0, 1.0]])
+    assert not _on_outline(View(cam, observed.astype(bool)), observed, (0, 0), end_on)
+    on_edge = end_on + np.array([0.0, 0.37, 0.0])   # the row v = 137, 3 px in from the edge
+    assert _on_outline(View(cam, observed.astype(bool)), observed, (0, 0), on_edge)
+
+
+def test_an_end_at_an_occluders_edge_is_not_located():
+    """A silhouette that ends where a scene box (or ignored pixels) starts hiding the tape's
+    continuation does not locate the end: the tape may go on behind it."""
+    from tapecell.estimator import Camera
+    from tapecell.estimator.verdict import _continuation_visible
+
+    cam = Camera("c", 200, 200, np.array([[100.0, 0, 100], [0, 100.0, 100], [0, 0, 1]]), np.zeros(5),
+                 np.eye(3), np.zeros(3))
+    view = View(cam, np.zeros((200, 200), bool))
+    tip = np.array([0.0, 0.0, 1.0])
+    tip_rotation = np.eye(3)            # trunk +x, left +y
+    width = 0.03
+    assert _continuation_visible(view, (), tip, tip_rotation, width)
+    # A box in front of the camera covering x >= 0.002 at the tape's depth.
+    box = Box("part", np.array([0.052, 0.0, 0.9]), np.array([0.1, 0.2, 0.05]), np.eye(3))
+    assert not _continuation_visible(view, (box,), tip, tip_rotation, width)
+    # The same box behind the tape hides nothing.
+    behind = Box("part", np.array([0.052, 0.0, 1.2]), np.array([0.1, 0.2, 0.05]), np.eye(3))
+    assert _continuation_visible(view, (behind,), tip, tip_rotation, width)
+    # Ignored pixels past the tip (an arm in the way).
+    ignore = np.zeros((200, 200), bool)
+    ignore[:, 100:] = True
+    assert not _continuation_visible(View(cam, view.mask, ignore), (), tip, tip_rotation, width)
