@@ -296,6 +296,10 @@ class CellConfig:
     robot: RobotSection
     grasp: GraspSection
     episode: EpisodeSection
+    randomize: dict = dataclasses.field(default_factory=dict)
+    """The ``[randomize]`` table as written (optional): domain randomisation of sim episodes,
+    checked and applied by the simulator (tapecell.sim.randomize), which the real cell
+    never loads."""
     source: str = ""
 
     def camera_placements(self, n_cameras: int) -> tuple[CameraPlacement, ...]:
@@ -353,7 +357,7 @@ def _build(cls: type, table: Any, source: str, where: str, skip: frozenset | set
             continue
         key = f"{where}.{f.name}" if where else f.name
         if f.name not in table:
-            if f.default is not dataclasses.MISSING:
+            if f.default is not dataclasses.MISSING or f.default_factory is not dataclasses.MISSING:
                 continue
             raise CellConfigError(f"{source}: missing key '{key}'")
         values[f.name] = _convert(hints[f.name], table[f.name], source, key)
@@ -363,6 +367,10 @@ def _build(cls: type, table: Any, source: str, where: str, skip: frozenset | set
 def _convert(tp: Any, value: Any, source: str, key: str) -> Any:
     if dataclasses.is_dataclass(tp):
         return _build(tp, value, source, key)
+    if tp is dict:
+        if not isinstance(value, dict):
+            raise CellConfigError(f"{source}: [{key}] must be a table, got {value!r}")
+        return dict(value)
     if tp is bool:
         if not isinstance(value, bool):
             raise CellConfigError(f"{source}: '{key}' must be true or false, got {value!r}")

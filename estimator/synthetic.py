@@ -121,7 +121,7 @@ def strip_angles(rng: np.random.Generator, segments: int, droop: float = 0.0) ->
                      profile(rng.normal(scale=0.12), 0.3)], axis=1)
 
 
-def _roughen(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def roughen(mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Segmentation-like noise: ragged boundary, speckles outside, pinholes inside."""
     m = mask.astype(np.float32)
     field = cv2.GaussianBlur(rng.normal(size=m.shape).astype(np.float32), (0, 0), 1.5)
@@ -197,7 +197,7 @@ def make_capture_with_angles(seed: int, options: SyntheticOptions = SyntheticOpt
             ignore = _occluder(cam, rng, mask)
             mask &= ~ignore
         if options.noise:
-            mask = _roughen(mask, rng)
+            mask = roughen(mask, rng)
             if ignore is not None:
                 mask &= ~ignore
         views.append(View(_perturb(cam, rng, options.miscalibration_px), mask, ignore))

@@ -51,9 +51,11 @@ def with_cameras(capture: Capture, cameras_file: Path) -> Capture:
 
 
 def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
-                config: Path | None = None) -> dict[str, Any]:
+                config: Path | None = None, randomize: Any = None) -> dict[str, Any]:
     """Run one episode; returns its `tape-episode/1` dict. Errors the planner or the arm
-    raise become the failure reason; anything else propagates."""
+    raise become the failure reason; anything else propagates. ``randomize``: a
+    :class:`~tapecell.sim.randomize.Randomize` (default: the cell file's ``[randomize]``
+    table); the values drawn for this seed are in the result's ``randomize``."""
     from .arm import SimArm
     from .cell import SimCell
     from tapecell.cell.config import load_cell_config
@@ -61,11 +63,20 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     from tapecell.cell.planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, plan_grasp
     from tapecell.cell.safety import SafetyLimits
 
+    from .randomize import Randomize, apply_to_capture, apply_to_config, apply_to_model
+
     cfg = load_cell_config(config)
+    if randomize is None:
+        randomize = Randomize.from_table(cfg.randomize, f"{cfg.source}: [randomize]")
+    drawn = randomize.draw(seed)
+    cameras = int(drawn.get("cameras", cameras))
+    cfg = apply_to_config(cfg, drawn, seed)
     times: dict[str, float] = {}
     doc: dict[str, Any] = {"format": "tape-episode/1", "seed": int(seed), "cameras": int(cameras),
                            "success": False, "outcome": "refused", "verdict": None, "failure": None,
                            "tip_error_mm": None, "normal_error_deg": None}
+    if drawn:
+        doc["randomize"] = drawn
     stream = cell = None
     if recording is not None:
         from tapecell.cell import recording as rec
@@ -74,11 +85,13 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     try:
         t0 = time.perf_counter()
         cell = SimCell(cfg, seed=seed, n_cameras=cameras, tool="gripper")
+        apply_to_model(cell.model, drawn)
         sim_arm = SimArm(cell, tool="gripper")
         sim_arm.open_gripper()
         capture = cell.capture(rgb=stream is not None)
         if cfg.episode.cameras_file:
             capture = with_cameras(capture, _resolve(cfg, cfg.episode.cameras_file))
+        capture = apply_to_capture(capture, drawn, seed)
         times["capture"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -96,6 +109,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             capture = cell.capture(rgb=stream is not None)
             if cfg.episode.cameras_file:
                 capture = with_cameras(capture, _resolve(cfg, cfg.episode.cameras_file))
+            capture = apply_to_capture(capture, drawn, seed)
             times["capture"] += time.perf_counter() - t1
             est = estimate(capture, callback=callback)
             times["estimate"] += est.time_s
