@@ -346,11 +346,12 @@ def _record_motion(cell, sim_arm, stream) -> None:
     cell.step_hook = log
 
 
-def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Path | None) -> dict[str, Any]:
+def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Path | None,
+                       randomize: Any = None) -> dict[str, Any]:
     """:func:`run_episode` for batch runs: an unexpected error becomes a failed episode
     ("error: ...") instead of ending the batch."""
     try:
-        return run_episode(seed, cameras, recording, config)
+        return run_episode(seed, cameras, recording, config, randomize)
     except TapecellError as e:
         return _failed(seed, cameras, "error", str(e))
     except Exception as e:  # a bug must not lose the other episodes; the reason keeps the trace
@@ -358,5 +359,11 @@ def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: 
 
 
 def _failed(seed: int, cameras: int, reason: str, detail: str) -> dict[str, Any]:
+    """An episode that ended in an error: counted as failed (whether the arm had acted is
+    not known)."""
     return {"format": "tape-episode/1", "seed": int(seed), "cameras": int(cameras), "success": False,
-            "failure": reason, "detail": detail, "tip_error_mm": None, "normal_error_deg": None, "time_s": {}}
+            "outcome": "failed", "verdict": None, "failure": reason, "detail": detail, "tip_error_mm": None,
+            "normal_error_deg": None, "time_s": {}}
+
+
+failed_episode = _failed

@@ -35,6 +35,8 @@ class EpisodeJob:
     recording: Path | None
     config: Path | None
     failures_only: bool = False
+    randomize: Any = None
+    """A :class:`~tapecell.sim.randomize.Randomize` (None: the cell file's table)."""
 
 
 def load_results(path: Path) -> list[dict[str, Any]]:
@@ -182,8 +184,9 @@ class Progress:
         width = 30
         filled = int(width * self.done / max(self.total, 1))
         status = "ok" if doc.get("success") else f"FAIL ({doc.get('failure')})"
+        rate = self.done / max(elapsed, 1e-9)
         msg = (f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
-               f"ok {self.ok}  eta {eta:5.0f} s  seed {doc.get('seed')} {status}")
+               f"ok {self.ok}  {rate:.2f}/s  eta {eta:5.0f} s  seed {doc.get('seed')} {status}")
         if self.tty:
             self.stream.write("\r" + msg.ljust(100))
             if self.done == self.total:
@@ -195,7 +198,7 @@ class Progress:
 
 def _worker(job: EpisodeJob) -> dict[str, Any]:
     from .episode import run_episode_safely
-    doc = run_episode_safely(job.seed, job.cameras, job.recording, job.config)
+    doc = run_episode_safely(job.seed, job.cameras, job.recording, job.config, job.randomize)
     if job.failures_only and doc.get("success") and job.recording is not None:
         job.recording.unlink(missing_ok=True)
         doc.pop("recording", None)
@@ -203,17 +206,27 @@ def _worker(job: EpisodeJob) -> dict[str, Any]:
 
 
 RRD_MODES = ("all", "failures")
+BACKENDS = ("process", "ray")
 
 
 def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, rrd: str | None = None,
-                 config: Path | None = None, worker: Callable[[EpisodeJob], dict] = _worker) -> list[dict]:
+                 config: Path | None = None, worker: Callable[[EpisodeJob], dict] = _worker,
+                 backend: str = "process", address: str | None = None, randomize: Any = None,
+                 progress_stream: TextIO | None = None) -> list[dict]:
     """Run the episodes not yet in ``out/results.jsonl``; returns all results for these seeds.
     rrd: "all" writes OUT/episode-NNNN.rrd for every episode, "failures" keeps only those of
-    episodes that did not grasp, None none."""
+    episodes that did not grasp, None none. backend: "process" (a pool of ``jobs`` local
+    processes) or "ray" (Ray tasks: a local Ray of ``jobs`` CPUs started in-process, bound
+    to 127.0.0.1, or the cluster at ``address`` HOST:PORT); the same seeds give the same
+    results on both."""
     if rrd not in (None,) + RRD_MODES:
         raise TapecellError(f"--rrd must be one of {', '.join(RRD_MODES)}, got {rrd!r}")
     if jobs < 1:
         raise TapecellError(f"--jobs must be 1 or more, got {jobs}")
+    if backend not in BACKENDS:
+        raise TapecellError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if address is not None and backend != "ray":
+        raise TapecellError("--address needs --backend ray")
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / RESULTS
     seeds = list(seeds)
@@ -223,11 +236,17 @@ def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, r
     if len(todo) < len(seeds):
         print(f"{len(seeds) - len(todo)} of {len(seeds)} episodes already in {results_path}; "
               f"running {len(todo)}", file=sys.stderr)
-    job_list = [EpisodeJob(s, cameras, out / f"episode-{s:04d}.rrd" if rrd else None, config, rrd == "failures")
-                for s in todo]
-    progress = Progress(len(job_list))
+    job_list = [EpisodeJob(s, cameras, out / f"episode-{s:04d}.rrd" if rrd else None, config, rrd == "failures",
+                           randomize) for s in todo]
+    progress = Progress(len(job_list), progress_stream or sys.stderr)
     new = []
-    if jobs == 1 or len(job_list) <= 1:
+    if backend == "ray":
+        from .ray_backend import run_on_ray
+        for doc in run_on_ray(job_list, jobs, address, worker):
+            append_result(results_path, doc)
+            new.append(doc)
+            progress.update(doc)
+    elif jobs == 1 or len(job_list) <= 1:
         for job in job_list:
             doc = worker(job)
             append_result(results_path, doc)

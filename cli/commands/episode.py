@@ -35,6 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cameras", type=_cameras, default=2, help="2 or 3 cameras (default 2)")
     p.add_argument("--rrd", type=Path, metavar="FILE", help="write a rerun recording of every step")
     p.add_argument("--config", type=Path, metavar="CELL.toml", help="cell file (default: the bundled one)")
+    add_randomize(p)
     add_force(p)
     p.set_defaults(func=run_one)
 
@@ -49,17 +50,45 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="write DIR/episode-NNNN.rrd for every episode (all) or only for those that did not "
                         "grasp (failures: what a reviewer usually wants)")
     p.add_argument("--config", type=Path, metavar="CELL.toml", help="cell file (default: the bundled one)")
+    add_randomize(p)
+    add_backend(p)
     add_force(p)
     p.set_defaults(func=run_many)
+
+
+def add_randomize(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--randomize", action="append", metavar="NAME=VALUE", default=[],
+                   help="domain randomisation on top of the cell file's [randomize] table (repeatable): VALUE is "
+                        "a number (fixed), lo:hi (uniform) or, for cameras, a list (2,3); names: "
+                        "light_azimuth_deg, light_elevation_deg, light_intensity, ambient, tape_rgb_jitter, "
+                        "tape_width_mm, tape_length_mm, tape_thickness_mm, tape_stiffness_scale, tape_model, "
+                        "calib_rot_deg, calib_trans_mm, mask_noise, cameras")
+
+
+def add_backend(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--backend", choices=("process", "ray"), default="process",
+                   help="process: a pool of --jobs local processes (default); ray: Ray tasks on a local Ray of "
+                        "--jobs CPUs bound to 127.0.0.1, or on the cluster at --address (pip install "
+                        "\"tapecell[ray]\")")
+    p.add_argument("--address", metavar="HOST:PORT",
+                   help="with --backend ray: an existing Ray cluster's head (started with ray start --head)")
+
+
+def randomize_of(args: argparse.Namespace, cfg) -> "object":
+    """The cell file's [randomize] table with the command line's overrides."""
+    from tapecell.sim.randomize import Randomize
+
+    return Randomize.from_table(cfg.randomize, f"{cfg.source}: [randomize]").with_overrides(args.randomize)
 
 
 def run_one(args: argparse.Namespace) -> int:
     from tapecell.sim.episode import run_episode
     from tapecell.cell.config import load_cell_config
 
-    load_cell_config(args.config)  # a bad cell file is one clear error before any work
+    cfg = load_cell_config(args.config)  # a bad cell file is one clear error before any work
+    randomize = randomize_of(args, cfg)
     check_files([args.rrd], args.force)
-    doc = run_episode(args.seed, args.cameras, args.rrd, args.config)
+    doc = run_episode(args.seed, args.cameras, args.rrd, args.config, randomize)
     print(json.dumps(doc))
     if not doc["success"]:
         print(f"tapecell: episode {args.seed} failed: {doc['failure']}"
@@ -72,7 +101,10 @@ def run_many(args: argparse.Namespace) -> int:
     from tapecell.sim.episodes import run_episodes, summarize
     from tapecell.cell.config import load_cell_config
 
-    load_cell_config(args.config)
+    cfg = load_cell_config(args.config)
+    randomize = randomize_of(args, cfg)
+    if args.address and args.backend != "ray":
+        raise TapecellError("--address needs --backend ray")
     if args.seed + args.n - 1 > MAX_SEED:
         raise TapecellError(f"--seed {args.seed} --n {args.n}: the last seed would pass {MAX_SEED}")
     # A results folder is resumed (its results.jsonl is appended to); any other non-empty
@@ -84,6 +116,6 @@ def run_many(args: argparse.Namespace) -> int:
     config = args.config.resolve() if args.config else None
     t0 = time.perf_counter()
     results = run_episodes(range(args.seed, args.seed + args.n), args.cameras, args.out, args.jobs,
-                           args.rrd, config)
+                           args.rrd, config, backend=args.backend, address=args.address, randomize=randomize)
     print(summarize(results, time.perf_counter() - t0))
     return 0
