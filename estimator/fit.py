@@ -39,7 +39,7 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from . import _kernels
+from . import _kernels, _kernels_beam, _kernels_boxes
 from .capture import Capture, View
 from .errors import EstimateError
 from .geometry import Camera, _distort
@@ -160,7 +160,7 @@ class _Field:
     boxes: tuple = ()
     """The capture's scene boxes: model points behind them from this camera count nothing."""
     box_arrays: tuple = ()
-    """``boxes`` in the kernels' form (see :func:`_kernels.box_arrays`)."""
+    """``boxes`` in the kernels' form (see :func:`_kernels_boxes.box_arrays`)."""
     outline_px: float = 1.0
     """Length of the observed silhouette's outer outline [px]."""
 
@@ -171,10 +171,10 @@ def _drop_small(m: np.ndarray, connectivity: int) -> np.ndarray:
     count, labels = cv2.connectedComponents(m, connectivity=connectivity)
     if count <= 2:
         return m
-    areas = _kernels.label_areas(labels, count) if COMPILED else np.bincount(labels.ravel(), minlength=count)
+    areas = _kernels_beam.label_areas(labels, count) if COMPILED else np.bincount(labels.ravel(), minlength=count)
     keep = np.zeros(count, np.uint8)
     keep[1:] = areas[1:] >= min(SPECKLE_PX, areas[1:].max())
-    return _kernels.map_labels(labels, keep, np.zeros(m.shape, np.uint8)) if COMPILED else keep[labels]
+    return _kernels_beam.map_labels(labels, keep, np.zeros(m.shape, np.uint8)) if COMPILED else keep[labels]
 
 
 def _clean_mask(mask: np.ndarray) -> np.ndarray:
@@ -188,11 +188,11 @@ def _fill_pinholes(m: np.ndarray) -> np.ndarray:
     count, labels = cv2.connectedComponents(inv, connectivity=4)
     if count <= 2:
         return m
-    areas = _kernels.label_areas(labels, count) if COMPILED else np.bincount(labels.ravel(), minlength=count)
+    areas = _kernels_beam.label_areas(labels, count) if COMPILED else np.bincount(labels.ravel(), minlength=count)
     small = np.zeros(count, bool)
     small[1:] = areas[1:] < SPECKLE_PX
     if COMPILED:
-        return _kernels.map_labels(labels, small.view(np.uint8), np.ascontiguousarray(m))
+        return _kernels_beam.map_labels(labels, small.view(np.uint8), np.ascontiguousarray(m))
     out = m.copy()
     out[small[labels]] = 1
     return out
@@ -247,7 +247,7 @@ def _prepare(view: View, boxes: tuple = ()) -> _Field:
         outline = outline[~_on_box_outline(cam, boxes, outline)]
     perimeter = max(1.0, sum(cv2.arcLength(c, True) for c in contours))
     return _Field(cam, x0, y0, field, ignore is not None, target, outline,
-                  _view_weight(roi, perimeter), (sdf, flag), tuple(boxes), _kernels.box_arrays(boxes) if boxes else (),
+                  _view_weight(roi, perimeter), (sdf, flag), tuple(boxes), _kernels_boxes.box_arrays(boxes) if boxes else (),
                   perimeter)
 
 
@@ -562,7 +562,7 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
             c_j = vw * c_j
         sdf, gx, gy, ignored = _lookup(f, u[:, :ns], v[:, :ns])
         if f.boxes:
-            behind = _kernels.hidden_points(f, pts[:, :ns])
+            behind = _kernels_boxes.hidden_points(f, pts[:, :ns])
             ignored = behind if ignored is None else ignored | behind
         r = np.where(centre, np.maximum(sdf, 0.0), sdf)
         rho, w = _robust(r, chain.edge & (sdf < 0))
@@ -588,7 +588,7 @@ def _residuals(chain: _Chain, fields: list[_Field], params: np.ndarray, jacobian
     if boxes:
         # The tape cannot pass through a scene box: its corners inside one are charged.
         corners = pts[:, ns:]
-        depth, grad = _kernels.box_penetration(np.ascontiguousarray(corners.reshape(-1, 3)), *fields[0].box_arrays)
+        depth, grad = _kernels_boxes.box_penetration(np.ascontiguousarray(corners.reshape(-1, 3)), *fields[0].box_arrays)
         pen = PENETRATION_PX_PER_M * depth.reshape(B, -1)
         rs.append(pen)
         cost += 0.5 * np.sum(pen * pen, axis=1)
@@ -676,7 +676,7 @@ def _diverse(order: np.ndarray, ends: np.ndarray, count: int) -> np.ndarray:
     if DIVERSE_M <= 0 or len(order) <= count:
         return order[:count]
     if COMPILED:
-        return _kernels.diverse(order, ends, count, DIVERSE_M)
+        return _kernels_beam.diverse(order, ends, count, DIVERSE_M)
     e = ends[order].reshape(len(order), -1, 3)
     diff = e[:, None] - e[None, :]
     d2 = np.einsum("abpk,abpk->abp", diff, diff).max(axis=-1)
@@ -705,7 +705,7 @@ def _beam_candidates(frames: np.ndarray, nodes: np.ndarray, grid_r: np.ndarray, 
     rotation of ``grid_r`` (g, 3, 3) by a plate of ``length`` and half-width ``h`` [m]:
     (frames (b, g, 3, 3), ends (b, g, 3, 3): the plate's end node, left and right corner,
     sample points (b, g, s, 3): edges, on the last plate the tip edge, centre line).
-    The NumPy reference of :func:`_kernels.beam_candidates`."""
+    The NumPy reference of :func:`_kernels_beam.beam_candidates`."""
     F = np.einsum("bij,gjk->bgik", frames, grid_r)               # (b, g, 3, 3)
     P = nodes[:, None, :] + length * F[..., :, 0]
     L0 = (nodes + h * frames[:, :, 1])[:, None, None, :]
@@ -740,7 +740,7 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
         last = i == n - 1
         edge_count = 2 * len(_BEAM_EDGE_T) + (len(_TIP_T) if last else 0)
         if COMPILED:
-            F, ends, pts = _kernels.beam_candidates(np.ascontiguousarray(frames), np.ascontiguousarray(nodes), grid_r, float(spec.segment_lengths[i]), h,
+            F, ends, pts = _kernels_beam.beam_candidates(np.ascontiguousarray(frames), np.ascontiguousarray(nodes), grid_r, float(spec.segment_lengths[i]), h,
                                                     _BEAM_EDGE_T, _TIP_T if last else no_tip, _CENTRE_T)
             F = F.reshape(len(nodes), len(grid), 3, 3)
             pts = pts.reshape(len(nodes), len(grid), -1, 3)
@@ -750,7 +750,7 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
         plate = np.zeros(pts.shape[:2])
         for f in fields:
             if COMPILED:
-                plate += f.weight * _kernels.beam_edge_cost(f, pts, edge_count, DELTA_OUT_PX, DELTA_IN_PX)
+                plate += f.weight * _kernels_beam.beam_edge_cost(f, pts, edge_count, DELTA_OUT_PX, DELTA_IN_PX)
                 continue
             u, v, *_ = _project(f.camera, pts)
             sdf, _, _, ignored = _lookup(f, u, v)
@@ -761,7 +761,7 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
             plate += f.weight * rho.sum(axis=2)
         boxes = fields[0].boxes if fields else ()
         if boxes:
-            depth, _ = _kernels.box_penetration(np.ascontiguousarray(ends.reshape(-1, 3), float),
+            depth, _ = _kernels_boxes.box_penetration(np.ascontiguousarray(ends.reshape(-1, 3), float),
                                                 *fields[0].box_arrays)   # the plates' end corners
             plate += 1e3 * BEAM_PENETRATION * depth.reshape(plate.shape + (-1,)).sum(axis=-1)
         prior = ANGLE_PRIOR * np.sum(grid ** 2, axis=1)
@@ -786,7 +786,7 @@ def _beam_search(spec: TapeSpec, fields: list[_Field], grid: np.ndarray = _GRID,
             continue
         obs = f.outline[::BEAM_OUTLINE_STEP]
         if COMPILED:
-            scores = scores + f.weight * BEAM_OUTLINE_STEP * _kernels.beam_outline_cost(f, corners, seg, obs,
+            scores = scores + f.weight * BEAM_OUTLINE_STEP * _kernels_beam.beam_outline_cost(f, corners, seg, obs,
                                                                                      DELTA_OUT_PX)
             continue
         u, v, *_ = _project(f.camera, corners)                          # (c, 2m)

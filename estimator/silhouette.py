@@ -26,7 +26,7 @@ import numpy as np
 
 from .capture import View
 from .geometry import Camera
-from . import _kernels
+from . import _kernels_boxes
 from .scene import Box
 from .tape import TapeShape
 
@@ -175,13 +175,13 @@ def visible_quads_batch(camera: Camera, quads_world: np.ndarray, boxes: Sequence
     probes = np.concatenate([quads_world, quads_world.mean(axis=2, keepdims=True)], axis=2)   # (B, m, 5, 3)
     arrays = _box_arrays(boxes)
     center = np.ascontiguousarray(camera.center, float)
-    behind = _kernels.segments_hit_boxes(center, probes.reshape(-1, 3), *arrays).reshape(B, m, 5)
+    behind = _kernels_boxes.segments_hit_boxes(center, probes.reshape(-1, 3), *arrays).reshape(B, m, 5)
     whole, mixed = ~behind.any(axis=2), behind.any(axis=2) & ~behind.all(axis=2)
     if not mixed.any():
         return [quads_world[b][whole[b]] for b in range(B)]
     k = OCCLUSION_CELLS * OCCLUSION_CELLS
     cells = subdivide(quads_world[mixed], OCCLUSION_CELLS)                                  # (M, k, 4, 3)
-    seen = ~_kernels.segments_hit_boxes(center, cells.reshape(-1, 4, 3).mean(axis=1), *arrays).reshape(-1, k)
+    seen = ~_kernels_boxes.segments_hit_boxes(center, cells.reshape(-1, 4, 3).mean(axis=1), *arrays).reshape(-1, k)
     owner = np.nonzero(mixed)[0]
     return [np.concatenate([quads_world[b][whole[b]], cells[owner == b][seen[owner == b]]]) for b in range(B)]
 
@@ -192,7 +192,7 @@ def _box_arrays(boxes: Sequence[Box]) -> tuple:
     if arrays is None or arrays[0] is not boxes[0]:
         if len(_BOX_ARRAYS) > 64:
             _BOX_ARRAYS.clear()
-        arrays = _BOX_ARRAYS[key] = (boxes[0], _kernels.box_arrays(boxes))
+        arrays = _BOX_ARRAYS[key] = (boxes[0], _kernels_boxes.box_arrays(boxes))
     return arrays[1]
 
 

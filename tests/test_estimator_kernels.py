@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tapecell.estimator import _kernels, fit
+from tapecell.estimator import _kernels, _kernels_beam, fit
 from tapecell.estimator.synthetic import SyntheticOptions, make_capture
 
 
@@ -82,7 +82,7 @@ def test_beam_scores_match_reference(prepared, monkeypatch):
         rho, _ = fit._robust(np.where(is_edge, sdf, np.maximum(sdf, 0.0)), is_edge & (sdf < 0))
         if ignored is not None:
             rho = np.where(ignored, 0.0, rho)
-        got = _kernels.beam_edge_cost(f, pts, 8, fit.DELTA_OUT_PX, fit.DELTA_IN_PX)
+        got = _kernels_beam.beam_edge_cost(f, pts, 8, fit.DELTA_OUT_PX, fit.DELTA_IN_PX)
         assert np.allclose(got, rho.sum(axis=2), rtol=1e-12, atol=0)
         corners = pts[0, :, :12]
         seg = np.array([(k, k + 1) for k in range(11)])
@@ -93,7 +93,7 @@ def test_beam_scores_match_reference(prepared, monkeypatch):
         ry = f.outline[None, :, 1, None] - ay[:, None]
         t = np.clip((rx * bx[:, None] + ry * by[:, None]) / np.maximum(bx * bx + by * by, 1e-9)[:, None], 0.0, 1.0)
         d = np.sqrt(np.min((rx - t * bx[:, None]) ** 2 + (ry - t * by[:, None]) ** 2, axis=2))
-        got = _kernels.beam_outline_cost(f, corners, seg, f.outline, fit.DELTA_OUT_PX)
+        got = _kernels_beam.beam_outline_cost(f, corners, seg, f.outline, fit.DELTA_OUT_PX)
         assert np.allclose(got, fit._huber(d)[0].sum(axis=1), rtol=1e-12, atol=0)
 
 
@@ -108,7 +108,7 @@ def test_beam_candidates_match_reference(prepared):
     for last in (False, True):
         F, ends, pts = fit._beam_candidates(frames, nodes, grid_r, 0.013, 0.004, last)
         tip = fit._TIP_T if last else np.zeros(0)
-        kF, kends, kpts = _kernels.beam_candidates(frames, nodes, grid_r, 0.013, 0.004, fit._BEAM_EDGE_T, tip,
+        kF, kends, kpts = _kernels_beam.beam_candidates(frames, nodes, grid_r, 0.013, 0.004, fit._BEAM_EDGE_T, tip,
                                                    fit._CENTRE_T)
         assert np.array_equal(kF, F.reshape(-1, 3, 3))
         assert np.array_equal(kends, ends.reshape(-1, 3, 3))

@@ -95,16 +95,16 @@ def test_occlusion_geometry():
 
 def test_compiled_occlusion_matches_reference():
     """The kernels' segment-box and penetration tests equal estimator/occlusion.py."""
-    from tapecell.estimator import _kernels
+    from tapecell.estimator import _kernels_boxes
 
     rng = np.random.default_rng(5)
     for _ in range(10):
         box = Box("b", rng.normal(size=3) * 0.1, rng.uniform(0.05, 0.2, 3), cv2.Rodrigues(rng.normal(size=3))[0])
         pts, eye = rng.normal(size=(300, 3)) * 0.2, rng.normal(size=3)
-        arrays = _kernels.box_arrays([box])
-        assert np.array_equal(hidden(eye, pts, [box]), _kernels.segments_hit_boxes(eye, pts, *arrays))
+        arrays = _kernels_boxes.box_arrays([box])
+        assert np.array_equal(hidden(eye, pts, [box]), _kernels_boxes.segments_hit_boxes(eye, pts, *arrays))
         d_ref, g_ref = penetration(pts, [box])
-        d, g = _kernels.box_penetration(pts, *arrays)
+        d, g = _kernels_boxes.box_penetration(pts, *arrays)
         assert np.allclose(d, d_ref) and np.allclose(g[d > 0], g_ref[d > 0])
 
 
