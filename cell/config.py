@@ -315,11 +315,6 @@ def default_cell_path() -> Path:
     from tapecell.assets import asset_path
 
     return asset_path("cell.toml")
-    try:
-        import tapecell_assets  # installed layout (pyproject maps assets/ to this name)
-        return Path(tapecell_assets.__file__).resolve().parent / "cell.toml"
-    except ImportError:
-        return here
 
 
 def load_cell_config(path: str | Path | None = None) -> CellConfig:

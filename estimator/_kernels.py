@@ -1,5 +1,5 @@
 """Compiled inner loops of the default estimator (numba), numerically the same as the
-NumPy code in :mod:`estimator.fit` they replace.
+NumPy code in :mod:`estimator.reference` they replace.
 
 A fit evaluates its residuals and their Jacobian a few dozen times and scores a few
 thousand beam candidates per node; in NumPy each evaluation is ~100 small array calls
@@ -45,7 +45,7 @@ def camera_params(camera: Camera) -> np.ndarray:
 
 @njit(cache=True, fastmath=False, inline="always")
 def _project(cam, px, py, pz):
-    """Pixel (u, v) of a world point and its camera-frame x/z, y/z, z (fit._project)."""
+    """Pixel (u, v) of a world point and its camera-frame x/z, y/z, z (reference.project)."""
     cx = px * cam[9] + py * cam[10] + pz * cam[11] + cam[18]
     cy = px * cam[12] + py * cam[13] + pz * cam[14] + cam[19]
     cz = px * cam[15] + py * cam[16] + pz * cam[17] + cam[20]
@@ -71,7 +71,7 @@ def _project(cam, px, py, pz):
 
 @njit(cache=True, fastmath=False, inline="always")
 def _duv_world(cam, x, y, z):
-    """Rows of d(u, v)/d(world point), pinhole part (fit._pixel_jacobian: (duv @ R))."""
+    """Rows of d(u, v)/d(world point), pinhole part (reference.pixel_jacobian: (duv @ R))."""
     inv_z = 1.0 / z
     a00 = cam[0] * inv_z
     a01 = cam[1] * inv_z
@@ -132,7 +132,7 @@ def _cell(h, w, x0, y0, u, v):
 
 @njit(cache=True, fastmath=False, inline="always")
 def _sample(field, x0, y0, has_ignore, u, v):
-    """fit._lookup at one pixel: (sdf, gx, gy, ignored) with cv2.remap's bilinear maths."""
+    """reference.lookup at one pixel: (sdf, gx, gy, ignored) with cv2.remap's bilinear maths."""
     h, w = field.shape[0], field.shape[1]
     sx, sy, sx1, sy1, a, b, ox, oy = _cell(h, w, x0, y0, u, v)
     sdf0 = _lerp2(field, sx, sy, sx1, sy1, a, b, 0)
@@ -149,7 +149,7 @@ def _sample(field, x0, y0, has_ignore, u, v):
 
 @njit(cache=True, fastmath=False, inline="always")
 def _robust(r, inside_edge, delta_out, delta_in):
-    """fit._robust for one residual: (rho, IRLS weight)."""
+    """reference.robust for one residual: (rho, IRLS weight)."""
     if inside_edge:
         q = (r / delta_in) ** 2
         return 0.5 * delta_in ** 2 * math.log1p(q), 1.0 / (1.0 + q)
@@ -161,7 +161,7 @@ def _robust(r, inside_edge, delta_out, delta_in):
 
 @njit(cache=True, fastmath=False, inline="always")
 def _huber(d, delta_out):
-    """fit._huber for one distance: (rho, IRLS weight)."""
+    """reference.huber for one distance: (rho, IRLS weight)."""
     if d <= delta_out:
         return 0.5 * d * d, 1.0
     return delta_out * (d - 0.5 * delta_out), delta_out / max(d, 1e-12)
@@ -171,7 +171,7 @@ def _huber(d, delta_out):
 
 @njit(cache=True, fastmath=False)
 def lookup(field, x0, y0, has_ignore, u, v):
-    """fit._lookup on flat (N,) pixel coordinates: (sdf, gx, gy, ignored) arrays."""
+    """reference.lookup on flat (N,) pixel coordinates: (sdf, gx, gy, ignored) arrays."""
     n = u.size
     sdf = np.empty(n)
     gx = np.empty(n)
@@ -184,7 +184,7 @@ def lookup(field, x0, y0, has_ignore, u, v):
 
 @njit(cache=True, fastmath=False)
 def chain_points(angles, base_position, base_rotation, segment_lengths, width, pair, pair_w, jacobian):
-    """fit._Chain.points: (B, n, 3) angles -> sample points then corners (B, s + 3m, 3)
+    """Chain.points: (B, n, 3) angles -> sample points then corners (B, s + 3m, 3)
     and, if ``jacobian``, their Jacobian (B, s + 3m, 3, 3n) (else shape (0, 0, 3, 0)).
 
     pair, pair_w: (s, 2) corner indices and weights of each sample point (the two non-zero
@@ -269,7 +269,7 @@ def chain_points(angles, base_position, base_rotation, segment_lengths, width, p
 @njit(cache=True, fastmath=False)
 def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns, edge, weight, segments,
                    delta_out, delta_in, hidden):
-    """One view's part of fit._residuals (no view shifts): coverage residuals of the
+    """One view's part of residuals.residuals (no view shifts): coverage residuals of the
     observed outline (P) then the sample points' (ns) residuals.
 
     pts: (B, ns + 3m, 3) sample points then corners; J: their Jacobian (B, ., 3, N);
@@ -419,7 +419,7 @@ def _chain_arrays(chain) -> tuple:
 
 
 def points(chain, angles: np.ndarray, jacobian: bool):
-    """Compiled ``fit._Chain.points``: (B, n, 3) angles -> points (B, s + 3m, 3), Jacobian
+    """Compiled ``Chain.points``: (B, n, 3) angles -> points (B, s + 3m, 3), Jacobian
     (B, s + 3m, 3, 3n) or None."""
     pair, pair_w, _, _, _, pos, rot, lengths, width = _chain_arrays(chain)
     pts, J = chain_points(np.ascontiguousarray(angles, float), pos, rot, lengths, width, pair, pair_w, jacobian)
@@ -427,7 +427,7 @@ def points(chain, angles: np.ndarray, jacobian: bool):
 
 
 def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: float, delta_in: float):
-    """Compiled per-view part of ``fit._residuals`` without view shifts: (residual blocks
+    """Compiled per-view part of ``residuals.residuals`` without view shifts: (residual blocks
     [(B, P_k + s)] per view, Jacobian blocks [(B, P_k + s, 3n)] or [], robust cost (B,),
     the chains' points (B, s + 3m, 3) and their Jacobian (B, s + 3m, 3, 3n) or None)."""
     pair, pair_w, edge, weight, segments, pos, rot, lengths, width = _chain_arrays(chain)

@@ -103,7 +103,7 @@ def outline_cost(corners, segments, cam, obs, delta_out):
 
 @njit(cache=True, fastmath=False)
 def beam_candidates(frames, nodes, grid_r, length, half, edge_t, tip_t, centre_t):
-    """fit._beam_search's candidates for one node: every kept partial chain (frames (B, 3,
+    """search.beam_search's candidates for one node: every kept partial chain (frames (B, 3,
     3), end nodes (B, 3)) extended by every joint rotation grid_r (G, 3, 3) by a plate of
     ``length`` and half-width ``half`` [m].
 
@@ -147,7 +147,7 @@ def beam_candidates(frames, nodes, grid_r, length, half, edge_t, tip_t, centre_t
 
 @njit(cache=True, fastmath=False)
 def diverse(order, ends, count, min_dist):
-    """fit._diverse: up to ``count`` of the candidates ``order`` (best first) whose ends
+    """search.diverse: up to ``count`` of the candidates ``order`` (best first) whose ends
     (N, 3, 3) lie at least ``min_dist`` from every better kept one's (each of the three
     points' squared distance summed as NumPy's einsum does), filled up with the best of
     the suppressed ones."""

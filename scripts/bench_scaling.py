@@ -79,7 +79,6 @@ def main(argv: list[str] | None = None) -> int:
                 subprocess.run([str(ray_bin), "stop", "--force"], capture_output=True)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    base = {b: r for (b, w), r in results.items() if w == 1}
     print(f"seeds {seeds[0]}..{seeds[-1]}, 2 cameras, {os.cpu_count()} cores")
     print(f"{'backend':<10} {'workers':>7} {'episodes/s':>11} {'speed-up':>9}")
     for backend, w, rate in rows:

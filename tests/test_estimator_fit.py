@@ -1,6 +1,7 @@
 """The estimator's maths and fits, on captures rendered by our own renderer (seeded)."""
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -9,6 +10,8 @@ import pytest
 
 from tapecell.estimator import estimate, forward_kinematics, load_capture, save_capture
 from tapecell.estimator.capture import View
+from tapecell.estimator.chain import Chain
+from tapecell.estimator.config import DEFAULT
 from tapecell.estimator.metrics import errors
 from tapecell.estimator.paper import initial_simplex
 from tapecell.estimator.silhouette import CostEvaluator, make_target, roi_of
@@ -51,13 +54,11 @@ def test_cost_is_zero_at_truth(seed):
 def test_batched_costs_equal_one_by_one():
     """The fit's candidate ranking: CostEvaluator.costs on a batch of chains (quads from the
     compiled corner kernel) equals eq. 11 chain by chain from forward kinematics."""
-    from tapecell.estimator import fit
-
     c, angles = make_capture_with_angles(7, SyntheticOptions(kind="chain", cameras=3))
     batch = angles[None] + np.random.default_rng(7).normal(scale=0.1, size=(6,) + angles.shape)
     ev = CostEvaluator([make_target(v) for v in c.views])
     one_by_one = [ev.cost(forward_kinematics(c.tape, a).quads()) for a in batch]
-    assert np.allclose(ev.costs(fit._Chain(c.tape).quads(batch)), one_by_one, rtol=1e-9, atol=0)
+    assert np.allclose(ev.costs(Chain(c.tape).quads(batch)), one_by_one, rtol=1e-9, atol=0)
     assert len(ev.costs(np.zeros((0, 5, 4, 3)))) == 0
 
 
@@ -145,20 +146,17 @@ def test_sample_captures_estimate_within_loose_bound(name):
     assert errors(est.nodes, est.tip_rotation, c.truth).tip_m < 10e-3
 
 
-def test_strip_stage_follows_continuous_tapes_better_than_the_plate_chain(monkeypatch):
+def test_strip_stage_follows_continuous_tapes_better_than_the_plate_chain():
     """On continuous strips (which 30 mm plates can only approximate) the strip stage puts
     the tip closer to the truth than the plate chain's own fit, over a handful of seeds."""
-    from tapecell.estimator import fit
-
     captures = [make_capture(seed, SyntheticOptions(kind="strip", cameras=2)) for seed in range(20, 30)]
 
-    def tips() -> np.ndarray:
+    def tips(config=DEFAULT) -> np.ndarray:
         return np.array([errors(e.nodes, e.tip_rotation, c.truth).tip_m
-                         for c, e in ((c, estimate(c)) for c in captures)])
+                         for c, e in ((c, estimate(c, config=config)) for c in captures)])
 
     with_strip = tips()
-    monkeypatch.setattr(fit, "STRIP", False)
-    plate_only = tips()
+    plate_only = tips(dataclasses.replace(DEFAULT, strip=False))
     assert np.median(with_strip) < 0.8 * np.median(plate_only)
     assert np.median(with_strip) < 0.5e-3
 
@@ -169,17 +167,15 @@ def test_strip_guard_keeps_the_plate_chain_when_the_strip_goes_astray(monkeypatc
     from tapecell.estimator import fit
 
     c = _chain_capture(16)
-    monkeypatch.setattr(fit, "STRIP", False)
-    plate = estimate(c)
-    monkeypatch.setattr(fit, "STRIP", True)
+    plate = estimate(c, config=dataclasses.replace(DEFAULT, strip=False))
 
-    def astray(chain, fields, angles):
+    def astray(chain, fields, angles, cfg):
         def output(frame_weight):
             return angles + 0.5
         output.tip = (np.full(3, 9.0), np.eye(3))
         return output
 
-    monkeypatch.setattr(fit, "_strip_stage", astray)
+    monkeypatch.setattr(fit, "strip_stage", astray)
     guarded = estimate(c)
     assert np.allclose(guarded.angles, plate.angles)
     assert guarded.cost == pytest.approx(plate.cost)

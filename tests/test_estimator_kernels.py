@@ -1,10 +1,20 @@
-"""The compiled kernels (estimator/_kernels.py) against the NumPy reference in fit.py."""
+"""The compiled kernels (estimator/_kernels*.py) against the NumPy reference (estimator/reference.py)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from tapecell.estimator import _kernels, _kernels_beam, fit
+import dataclasses
+
+from tapecell.estimator import _kernels, _kernels_beam, reference
+from tapecell.estimator.chain import Chain
+from tapecell.estimator.config import DEFAULT, angle_grid, as_array
+from tapecell.estimator.residuals import residuals
+from tapecell.estimator.search import beam_search, diverse
+from tapecell.estimator.tape import joint_rotations
+from tapecell.estimator.views import clean_mask, fill_pinholes, prepare
+
+NUMPY = dataclasses.replace(DEFAULT, compiled=False)
 from tapecell.estimator.synthetic import SyntheticOptions, make_capture
 
 
@@ -12,10 +22,10 @@ from tapecell.estimator.synthetic import SyntheticOptions, make_capture
 def prepared(request):
     seed, hard = request.param
     c = make_capture(seed, SyntheticOptions(kind="strip", cameras=3, noise=hard, occluder=hard, distortion=hard))
-    fields = [fit._prepare(v) for v in c.views]
+    fields = [prepare(v) for v in c.views]
     assert any(f.has_ignore for f in fields) == hard
     assert any(f.camera.has_distortion for f in fields) == hard
-    return fit._Chain(c.tape), fields
+    return Chain(c.tape), fields
 
 
 def _relative(a, b):
@@ -31,7 +41,7 @@ def test_lookup_reproduces_cv2_remap_exactly(prepared):
         v = rng.uniform(f.y0 - 15, f.y0 + h + 15, 3000)
         u[:300] = np.round(u[:300])          # on pixel centres and the ROI's last row/column
         v[:100] = f.y0 + h - 1
-        sdf, gx, gy, ignored = fit._lookup(f, u, v)
+        sdf, gx, gy, ignored = reference.lookup(f, u, v)
         k_sdf, k_gx, k_gy, k_ignored = _kernels.lookup(f.field, f.x0, f.y0, f.has_ignore, u, v)
         assert np.array_equal(k_sdf, sdf) and np.array_equal(k_gx, gx) and np.array_equal(k_gy, gy)
         assert np.array_equal(k_ignored, ignored if ignored is not None else np.zeros_like(k_ignored))
@@ -40,82 +50,79 @@ def test_lookup_reproduces_cv2_remap_exactly(prepared):
 def test_chain_points_and_jacobian_match(prepared):
     chain, _ = prepared
     angles = np.random.default_rng(1).normal(scale=0.6, size=(6, chain.n, 3))
-    pts, J = chain.points(angles, True)
+    pts, J = reference.chain_points(chain, angles, True)
     k_pts, k_J = _kernels.points(chain, angles, True)
     assert _relative(k_pts, pts) < 1e-12 and _relative(k_J, J) < 1e-12
     assert _kernels.points(chain, angles, False)[1] is None
 
 
-def test_residuals_and_jacobian_match_reference(prepared, monkeypatch):
+def test_residuals_and_jacobian_match_reference(prepared):
     chain, fields = prepared
     rng = np.random.default_rng(2)
     # Near the straight chain (most samples on the tape) and far from it (most outside).
     for scale in (0.1, 0.8):
         params = rng.normal(scale=scale, size=(5, 3 * chain.n))
-        r, J, cost = fit._residuals(chain, fields, params, True)
-        r0, _, cost0 = fit._residuals(chain, fields, params, False)
-        monkeypatch.setattr(fit, "COMPILED", False)
-        ref_r, ref_J, ref_cost = fit._residuals(chain, fields, params, True)
-        monkeypatch.setattr(fit, "COMPILED", True)
+        r, J, cost = residuals(chain, fields, params, True)
+        r0, _, cost0 = residuals(chain, fields, params, False)
+        ref_r, ref_J, ref_cost = residuals(chain, fields, params, True, NUMPY)
         assert r.shape == ref_r.shape and J.shape == ref_J.shape
         assert _relative(r, ref_r) < 1e-9 and _relative(J, ref_J) < 1e-9
         assert np.allclose(cost, ref_cost, rtol=1e-12, atol=0)
         assert np.array_equal(r0, r) and np.array_equal(cost0, cost)
 
 
-def test_beam_scores_match_reference(prepared, monkeypatch):
+def test_beam_scores_match_reference(prepared):
     chain, fields = prepared
     spec = chain.spec
     rng = np.random.default_rng(3)
-    grid = fit._angle_grid([-0.6, 0.0, 0.6], [-0.8, 0.0, 0.8], [0.0])
-    compiled = fit._beam_search(spec, fields, grid, 4)
-    monkeypatch.setattr(fit, "COMPILED", False)
-    reference = fit._beam_search(spec, fields, grid, 4)
-    assert len(compiled) == len(reference) == 4
-    assert all(np.array_equal(a, b) for a, b in zip(compiled, reference))
+    grid = angle_grid([-0.6, 0.0, 0.6], [-0.8, 0.0, 0.8], [0.0])
+    compiled = beam_search(spec, fields, grid, 4)
+    numpy = beam_search(spec, fields, grid, 4, NUMPY)
+    assert len(compiled) == len(numpy) == 4
+    assert all(np.array_equal(a, b) for a, b in zip(compiled, numpy))
     # the scores themselves, on random candidates' points and corners
     pts = spec.base_position + rng.normal(scale=0.03, size=(2, 7, 13, 3))
     for f in fields:
-        u, v, *_ = fit._project(f.camera, pts)
-        sdf, _, _, ignored = fit._lookup(f, u, v)
+        u, v, *_ = reference.project(f.camera, pts)
+        sdf, _, _, ignored = reference.lookup(f, u, v)
         is_edge = np.arange(13) < 8
-        rho, _ = fit._robust(np.where(is_edge, sdf, np.maximum(sdf, 0.0)), is_edge & (sdf < 0))
+        rho, _ = reference.robust(np.where(is_edge, sdf, np.maximum(sdf, 0.0)), is_edge & (sdf < 0))
         if ignored is not None:
             rho = np.where(ignored, 0.0, rho)
-        got = _kernels_beam.beam_edge_cost(f, pts, 8, fit.DELTA_OUT_PX, fit.DELTA_IN_PX)
+        got = _kernels_beam.beam_edge_cost(f, pts, 8, DEFAULT.delta_out_px, DEFAULT.delta_in_px)
         assert np.allclose(got, rho.sum(axis=2), rtol=1e-12, atol=0)
         corners = pts[0, :, :12]
         seg = np.array([(k, k + 1) for k in range(11)])
-        cu, cv, *_ = fit._project(f.camera, corners)
+        cu, cv, *_ = reference.project(f.camera, corners)
         ax, ay = cu[:, seg[:, 0]], cv[:, seg[:, 0]]
         bx, by = cu[:, seg[:, 1]] - ax, cv[:, seg[:, 1]] - ay
         rx = f.outline[None, :, 0, None] - ax[:, None]
         ry = f.outline[None, :, 1, None] - ay[:, None]
         t = np.clip((rx * bx[:, None] + ry * by[:, None]) / np.maximum(bx * bx + by * by, 1e-9)[:, None], 0.0, 1.0)
         d = np.sqrt(np.min((rx - t * bx[:, None]) ** 2 + (ry - t * by[:, None]) ** 2, axis=2))
-        got = _kernels_beam.beam_outline_cost(f, corners, seg, f.outline, fit.DELTA_OUT_PX)
-        assert np.allclose(got, fit._huber(d)[0].sum(axis=1), rtol=1e-12, atol=0)
+        got = _kernels_beam.beam_outline_cost(f, corners, seg, f.outline, DEFAULT.delta_out_px)
+        assert np.allclose(got, reference.huber(d)[0].sum(axis=1), rtol=1e-12, atol=0)
 
 
 def test_beam_candidates_match_reference(prepared):
     chain, _ = prepared
     spec = chain.spec
     rng = np.random.default_rng(4)
-    grid = fit._angle_grid([-0.8, 0.0, 0.4], [-1.2, 0.3, 1.2], [-0.4, 0.0])
-    grid_r = fit.joint_rotations(grid)
-    frames = fit.joint_rotations(rng.normal(scale=0.7, size=(5, 3))) @ spec.base_rotation
+    grid = angle_grid([-0.8, 0.0, 0.4], [-1.2, 0.3, 1.2], [-0.4, 0.0])
+    grid_r = joint_rotations(grid)
+    frames = joint_rotations(rng.normal(scale=0.7, size=(5, 3))) @ spec.base_rotation
     nodes = spec.base_position + rng.normal(scale=0.02, size=(5, 3))
     for last in (False, True):
-        F, ends, pts = fit._beam_candidates(frames, nodes, grid_r, 0.013, 0.004, last)
-        tip = fit._TIP_T if last else np.zeros(0)
-        kF, kends, kpts = _kernels_beam.beam_candidates(frames, nodes, grid_r, 0.013, 0.004, fit._BEAM_EDGE_T, tip,
-                                                   fit._CENTRE_T)
+        F, ends, pts = reference.beam_candidates(frames, nodes, grid_r, 0.013, 0.004, last)
+        tip = as_array(DEFAULT.tip_t) if last else np.zeros(0)
+        kF, kends, kpts = _kernels_beam.beam_candidates(frames, nodes, grid_r, 0.013, 0.004,
+                                                        as_array(DEFAULT.beam_edge_t), tip, as_array(DEFAULT.centre_t))
         assert np.array_equal(kF, F.reshape(-1, 3, 3))
         assert np.array_equal(kends, ends.reshape(-1, 3, 3))
         assert np.array_equal(kpts, pts.reshape(len(kpts), -1, 3))
 
 
-def test_diverse_matches_reference(monkeypatch):
+def test_diverse_matches_reference():
     rng = np.random.default_rng(5)
     for trial in range(20):
         # clustered ends, so that many candidates lie within DIVERSE_M of each other
@@ -123,20 +130,17 @@ def test_diverse_matches_reference(monkeypatch):
         ends = centres[rng.integers(0, 6, 300)] + rng.normal(scale=0.004, size=(300, 3, 3))
         order = rng.permutation(300)[:rng.integers(5, 80)]
         count = int(rng.integers(1, 12))
-        got = fit._diverse(order, ends, count)
-        monkeypatch.setattr(fit, "COMPILED", False)
-        ref = fit._diverse(order, ends, count)
-        monkeypatch.setattr(fit, "COMPILED", True)
+        got = diverse(order, ends, count)
+        ref = diverse(order, ends, count, NUMPY)
         assert np.array_equal(got, ref)
 
 
-def test_mask_cleaning_matches_reference(monkeypatch):
+def test_mask_cleaning_matches_reference():
     rng = np.random.default_rng(6)
     m = np.zeros((120, 160), np.uint8)
     m[30:90, 20:140] = 1
     m[rng.random(m.shape) < 0.02] ^= 1          # speckles outside, pinholes inside
-    got = fit._fill_pinholes(fit._clean_mask(m.astype(bool)))
-    monkeypatch.setattr(fit, "COMPILED", False)
-    ref = fit._fill_pinholes(fit._clean_mask(m.astype(bool)))
+    got = fill_pinholes(clean_mask(m.astype(bool)))
+    ref = fill_pinholes(clean_mask(m.astype(bool), NUMPY), NUMPY)
     assert got.dtype == ref.dtype == np.uint8 and np.array_equal(got, ref)
     assert 0 < int(got.sum()) < m.size and not np.array_equal(ref, m)

@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tapecell.estimator import fit
+import dataclasses
+
+from tapecell.estimator import _kernels, reference
+from tapecell.estimator.chain import Chain
+from tapecell.estimator.config import DEFAULT
+from tapecell.estimator.strip import _strip_for, _tip_frame_rows
 from tapecell.estimator.synthetic import make_capture, random_chain_angles
 from tapecell.estimator.tape import TapeSpec
 
@@ -34,22 +39,21 @@ def _spec(rng) -> TapeSpec:
 
 @pytest.mark.parametrize("seed", range(3))
 @pytest.mark.parametrize("compiled", [True, False])
-def test_chain_points_jacobian(seed, compiled, monkeypatch):
+def test_chain_points_jacobian(seed, compiled):
     """Sample points and corners of the plate chain (compiled kernel and NumPy reference)."""
-    monkeypatch.setattr(fit, "COMPILED", compiled)
     rng = np.random.default_rng(seed)
-    chain = fit._Chain(_spec(rng))
+    chain = Chain(_spec(rng), cfg=dataclasses.replace(DEFAULT, compiled=compiled))
     a = random_chain_angles(rng, 5)
-    pts = (lambda x: fit._kernels.points(chain, x.reshape(1, 5, 3), False)[0][0]) if compiled else \
-        (lambda x: chain.points(x.reshape(1, 5, 3), False)[0][0])
-    J = (fit._kernels.points(chain, a[None], True) if compiled else chain.points(a[None], True))[1][0]
+    points = _kernels.points if compiled else reference.chain_points
+    pts = lambda x: points(chain, x.reshape(1, 5, 3), False)[0][0]   # noqa: E731
+    J = points(chain, a[None], True)[1][0]
     assert np.allclose(J, _fd(pts, a.ravel()), atol=1e-7)
 
 
 @pytest.mark.parametrize("seed", range(3))
 def test_chain_corners_jacobian(seed):
     rng = np.random.default_rng(10 + seed)
-    chain = fit._Chain(_spec(rng))
+    chain = Chain(_spec(rng))
     a = random_chain_angles(rng, 5)
     c, J = chain.corners(a)
     assert np.allclose(J, _fd(lambda x: chain.corners(x.reshape(5, 3))[0], a.ravel()), atol=1e-7)
@@ -58,7 +62,7 @@ def test_chain_corners_jacobian(seed):
 @pytest.mark.parametrize("seed", range(2))
 def test_strip_corners_jacobian(seed):
     rng = np.random.default_rng(20 + seed)
-    strip = fit._strip_for(_spec(rng))
+    strip = _strip_for(_spec(rng), DEFAULT)
     x = rng.normal(scale=0.2, size=strip.T.shape[1])
     c, J = strip.corners(x)
     assert np.allclose(J, _fd(lambda y: strip.corners(y)[0], x), atol=1e-7)
@@ -66,10 +70,10 @@ def test_strip_corners_jacobian(seed):
 
 def test_tip_frame_rows_jacobian():
     rng = np.random.default_rng(30)
-    chain = fit._Chain(_spec(rng))
+    chain = Chain(_spec(rng))
     a = random_chain_angles(rng, 5)
     target = np.linalg.qr(rng.normal(size=(3, 3)))[0]
-    rows = fit._tip_frame_rows(chain, target, 1.0)
+    rows = _tip_frame_rows(chain, target, 1.0)
 
     def r(x):
         c, J = chain.corners(x.reshape(5, 3))
@@ -84,15 +88,15 @@ def test_pixel_jacobian_pinhole():
     capture = make_capture(40)
     camera = capture.views[0].camera
     rng = np.random.default_rng(40)
-    chain = fit._Chain(capture.tape)
+    chain = Chain(capture.tape)
     a = random_chain_angles(rng, 5)
     pts, J = chain.points(a[None], True)
-    u, v, x, y, z = fit._project(camera, pts)
-    Juv = fit._pixel_jacobian(camera, x, y, z, J)
+    u, v, x, y, z = reference.project(camera, pts)
+    Juv = reference.pixel_jacobian(camera, x, y, z, J)
 
     def uv(q):
         p, _ = chain.points(q.reshape(1, 5, 3), False)
-        uu, vv, *_ = fit._project(camera, p)
+        uu, vv, *_ = reference.project(camera, p)
         return np.stack([uu, vv], axis=-1)
 
     assert np.allclose(Juv[0], _fd(uv, a.ravel())[0], rtol=1e-5, atol=1e-4)

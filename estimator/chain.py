@@ -1,0 +1,99 @@
+"""The plate chain: its sample points (edges, tip edge, centre line) and corners for a
+batch of joint-angle sets, with their exact Jacobian through the chain's kinematics."""
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from . import _kernels, reference
+from .config import DEFAULT, FitConfig
+from .tape import TapeSpec
+
+
+@functools.lru_cache(maxsize=16)
+def _chain_layout(n: int, tip_weight: float, edge_t: tuple, centre_t: tuple, tip_t: tuple):
+    """The sample-point layout of an n-plate chain (see :class:`_Chain`), built once per n:
+    (M, edge, weight, segments, moves), shared: not to be written."""
+    m = n + 1
+    rows, edge = [], []
+    # corners: index k -> P_C[k], m + k -> P_L[k], 2m + k -> P_R[k]
+    for side in (1, 2):
+        for i in range(1, m):
+            for t in edge_t:
+                w = np.zeros(3 * m)
+                w[side * m + i - 1] = 1 - t
+                w[side * m + i] = t
+                rows.append(w)
+                edge.append(True)
+    for t in tip_t:
+        w = np.zeros(3 * m)
+        w[m + n] = 1 - t
+        w[2 * m + n] = t
+        rows.append(w)
+        edge.append(True)
+    for i in range(1, m):
+        for t in centre_t:
+            w = np.zeros(3 * m)
+            w[i - 1] = 1 - t
+            w[i] = t
+            rows.append(w)
+            edge.append(False)
+    M = np.array(rows)
+    edge = np.array(edge)
+    # The tip is what the robot grasps: its plate's edges and the tip edge count more.
+    tip = M[:, [m + n, 2 * m + n]].sum(axis=1) > 0
+    weight = np.where(tip & edge, tip_weight, 1.0)
+    # silhouette outline segments as corner index pairs: left, right, tip and base edges
+    left = [(m + k, m + k + 1) for k in range(n)]
+    right = [(2 * m + k, 2 * m + k + 1) for k in range(n)]
+    segments = np.array(left + right + [(m + n, 2 * m + n), (m, 2 * m)])
+    # corner c belongs to the frame of node c % m: it moves with joints 1..c % m
+    node_of = np.tile(np.arange(m), 3)
+    moves = (node_of[:, None] >= np.arange(1, m)[None, :]).astype(float)  # (3m, n)
+    return M, edge, weight, segments, moves
+
+
+class Chain:
+    """Sample points on the chain's silhouette-relevant parts and their Jacobian, for a
+    batch of B angle sets at once."""
+
+    def __init__(self, spec: TapeSpec, edge_t: tuple | None = None, centre_t: tuple | None = None,
+                 cfg: FitConfig = DEFAULT):
+        """edge_t, centre_t: where on each plate (fractions of its length) the edge and
+        centre-line sample points lie (default: the config's)."""
+        self.spec = spec
+        self.n = spec.n
+        self.cfg = cfg
+        edge_t = cfg.edge_t if edge_t is None else edge_t
+        centre_t = cfg.centre_t if centre_t is None else centre_t
+        self.M, self.edge, self.weight, self.segments, self.moves = _chain_layout(
+            spec.n, float(cfg.tip_weight), tuple(float(t) for t in edge_t), tuple(float(t) for t in centre_t),
+            tuple(float(t) for t in cfg.tip_t))
+        self.samples = len(self.M)
+
+    def corners(self, angles: np.ndarray):
+        """(n, 3) angles -> the corners P_C, P_L, P_R (3m, 3) and their Jacobian (3m, 3, 3n)."""
+        a = np.asarray(angles, float).reshape(1, self.n, 3)
+        pts, J = self.points(a, True)
+        return pts[0, self.samples:], J[0, self.samples:]
+
+    def tips(self, angles: np.ndarray) -> np.ndarray:
+        """(B, n, 3) angles -> the chains' tips P_C[n] (B, 3)."""
+        a = np.asarray(angles, float).reshape(-1, self.n, 3)
+        pts, _ = self.points(a, False)
+        return pts[:, self.samples + self.n]
+
+    def quads(self, angles: np.ndarray) -> np.ndarray:
+        """(B, n, 3) angles -> the plates' quads (B, n, 4, 3), as ``TapeShape.quads``."""
+        a = np.asarray(angles, float).reshape(-1, self.n, 3)
+        pts, _ = self.points(a, False)
+        c = pts[:, self.samples:]
+        m, i = self.n + 1, np.arange(self.n)
+        return np.stack([c[:, m + i], c[:, m + i + 1], c[:, 2 * m + i + 1], c[:, 2 * m + i]], axis=2)
+
+    def points(self, angles: np.ndarray, jacobian: bool):
+        """(B, n, 3) angles -> (B, s + 3m, 3) sample points then corners and, if asked,
+        their (B, s + 3m, 3, 3n) Jacobian (compiled, or the NumPy reference)."""
+        a = np.ascontiguousarray(angles, float)
+        return _kernels.points(self, a, jacobian) if self.cfg.compiled else reference.chain_points(self, a, jacobian)

@@ -1,0 +1,162 @@
+"""Every number the default estimator's fit runs on, in one frozen, documented dataclass.
+
+``estimate(capture, config=FitConfig(...))`` fits with other settings; ``DEFAULT`` is the
+measured set (README, Benchmarks). The verdict's thresholds are in :mod:`estimator.verdict`.
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    """The fit's settings. Pixels [px], metres [m], radians [rad]."""
+
+    # views and masks (estimator/views.py)
+    margin_px: int = 12
+    """ROI margin around the observed tape [px]."""
+    occluded_margin_px: int = 60
+    """ROI margin when an ignore mask may hide part of the tape [px]."""
+    speckle_px: int = 25
+    """Connected regions (of tape or of background inside it) smaller than this are noise."""
+    outline_points: int = 48
+    """Observed outline points per view in the coverage term."""
+    box_edge_px: float = 3.0
+    """Observed outline points this close [px] to a scene box's projected outline are where
+    the tape goes behind the box, not the tape's own edge: the coverage term leaves them out."""
+    thin_px: float = 15.0
+    """A view whose silhouette is on average thinner than this [px] (2 area / perimeter) has
+    its robust terms weighted by (thickness / thin_px)^2 (0: off)."""
+
+    # robust residuals (estimator/residuals.py)
+    delta_out_px: float = 3.0
+    """Huber scale for points outside the silhouette [px]."""
+    delta_in_px: float = 1.5
+    """Cauchy scale for edge points inside the silhouette (possibly hidden edges) [px]."""
+    tip_weight: float = 1.0
+    """Weight of the residuals on the last plate's edges and the tip edge (others 1)."""
+    angle_prior_px: float = 1.0
+    """Residual [px] per radian of every joint angle in the local stage (a weak prior)."""
+    penetration_px_per_m: float = 5000.0
+    """Residual [px] per metre a chain point lies inside a scene box (1 mm inside costs like
+    a boundary 5 px off): the tape cannot pass through the part or the table."""
+    edge_t: tuple = (0.25, 0.5, 0.75, 1.0)
+    """Edge sample points on each plate (fractions of its length)."""
+    tip_t: tuple = (0.1, 0.3, 0.5, 0.7, 0.9)
+    """Sample points on the tip edge (fractions of its width)."""
+    centre_t: tuple = (0.5, 1.0)
+    """Centre-line sample points on each plate (fractions of its length)."""
+
+    # global search (estimator/search.py)
+    beam: int = 8
+    """Partial chains kept per node in the global stage."""
+    diverse_m: float = 0.006
+    """Plate ends of two kept partial chains differ by at least this [m] (beam diversity)."""
+    diverse_pool: int = 2
+    """The diverse beam picks from this many times its width of best candidates."""
+    angle_prior: float = 0.05
+    """Weight of a weak preference for small joint angles in the global stage."""
+    beam_penetration: float = 50.0
+    """Beam-score penalty per millimetre a candidate's sample point lies inside a scene box."""
+    beam_edge_t: tuple = (0.25, 0.5, 0.75, 1.0)
+    """Edge sample points of a beam candidate's plate (fractions of its length)."""
+    beam_outline_step: int = 2
+    """Every how many observed outline points rank the beam's complete chains."""
+    grid: tuple = ((-0.8, -0.4, 0.0, 0.4, 0.8), tuple(np.linspace(-1.2, 1.2, 9).tolist()), (0.0,))
+    """The global stage's joint angles: (twist, out-of-plane bend, in-plane bend) values [rad]."""
+    wide_grid: tuple = (tuple(np.linspace(-1.2, 1.2, 7).tolist()), tuple(np.linspace(-1.5, 1.5, 11).tolist()),
+                        (-0.4, 0.0, 0.4))
+    """The wide search's joint angles [rad]."""
+
+    # local stage (estimator/refine.py, estimator/solver.py)
+    refine: int = 3
+    """Candidates refined to convergence after screening."""
+    refine_eq11: int = 1
+    """Further screened candidates, the best by the silhouette cost (eq. 11), refined too..."""
+    eq11_range: float = 2.0
+    """... chosen among those whose robust cost is below this multiple of the best one's."""
+    alternatives: int = 2
+    """Distinct screened candidates (tips more than DISTINCT_TIP_M from the refined ones)
+    refined as well, so that another shape explaining the views is found and weighed."""
+    lm_screen: int = 4
+    """Levenberg-Marquardt iterations every beam candidate gets before screening."""
+    lm_iterations: int = 6
+    """Levenberg-Marquardt iterations of the kept candidates."""
+    lm_rtol: float = 3e-3
+    """A local-stage step that lowers the robust cost by less than this fraction ends it."""
+
+    # when to search wider (estimator/fit.py)
+    wide_cost: float = 0.15
+    """Eq.-11 cost above which a fit is poor enough to pay for the wide search."""
+    wide_offset_px: float = 1.5
+    """... or when a view's mean boundary distance (its XOR over its outline length) is above
+    this [px]: a view the first search's winner does not explain (about 1 in 10 good fits)."""
+    wide_beam: int = 8
+    """Partial chains kept per node in the wide search."""
+    thorough_beam: int = 24
+    """Partial chains kept per node in the second look an estimate that is not "ok" gets."""
+    wide_variants: bool = True
+    """The wide search also refines the winner's other branches (mirrored bends, flipped or
+    quarter-turned twists)."""
+    wide_gain: float = 0.85
+    """The wide search's result replaces the first when its eq.-11 cost is below this
+    fraction of the first's (only a clear difference counts)."""
+
+    # strip stage (estimator/strip.py)
+    strip: bool = True
+    """After the plate chain's fit, refine a continuous strip on the same residuals and take
+    the output chain and the tip frame from it (off: the plate chain's fit is the output)."""
+    strip_plates: int = 4
+    """Fine plates per model plate in the strip."""
+    strip_edge_t: tuple = (1 / 3, 2 / 3, 1.0)
+    strip_centre_t: tuple = (1.0,)
+    """Sample points on each fine plate's edges and centre line (fractions of its length)."""
+    strip_in_plane_px: float = 100.0
+    """Residual [px] per radian (per model-plate length) of in-plane bending in the strip: a
+    tape barely bends within its own plane, so this stays near zero unless the views insist."""
+    strip_iterations: int = 15
+    strip_rtol: float = 3e-3
+    """The strip's fit ends when a step lowers its robust cost by less than this fraction."""
+    strip_tip_weight: float = 10.0
+    """Weight of the tip's corners when the output chain is fitted to the strip in 3-D."""
+    strip_frame_weight: float = 1.0
+    """Weight of the strip's tip frame (its direction and width axis) on the output chain's
+    tip frame F_n, relative to a corner's position: on a tape curled within the last plate,
+    F_n along the chord tilts from the tape's frame at the tip by half the curl, so the
+    chain's last plate is pulled part of the way towards the strip's tip frame (measured:
+    tip normal median 6.4 -> 4.8 deg on the samples, tip error unchanged)."""
+    strip_guard: float = 2.0
+    """The chain taken from the strip is dropped when its silhouette cost (eq. 11) exceeds
+    this multiple of the plate chain's own fit (a strip fit gone astray)."""
+
+    # implementation
+    compiled: bool = True
+    """Evaluate the hot loops with the compiled kernels (numba, estimator/_kernels*.py); off:
+    the NumPy reference (estimator/reference.py; same numbers to float rounding, ~10x
+    slower per call)."""
+
+    def grid_angles(self, wide: bool = False) -> np.ndarray:
+        """(g, 3) the global stage's (or the wide search's) candidate joint angles [rad]."""
+        return angle_grid(*(self.wide_grid if wide else self.grid))
+
+
+@functools.lru_cache(maxsize=8)
+def _angle_grid(tx: tuple, ty: tuple, tz: tuple) -> np.ndarray:
+    return np.stack(np.meshgrid(tx, ty, tz, indexing="ij"), axis=-1).reshape(-1, 3)
+
+
+def angle_grid(tx, ty, tz) -> np.ndarray:
+    """Candidate joint angles (θx, θy, θz) of the global stage [rad]: every combination."""
+    return _angle_grid(tuple(float(v) for v in tx), tuple(float(v) for v in ty), tuple(float(v) for v in tz))
+
+
+@functools.lru_cache(maxsize=64)
+def as_array(values: tuple) -> np.ndarray:
+    """A config tuple of numbers as a float array (cached: built once; not to be written)."""
+    return np.array(values, float)
+
+
+DEFAULT = FitConfig()

@@ -1,0 +1,101 @@
+"""The local stage: candidate chains refined together by Levenberg-Marquardt, screened by
+the robust cost, the best refined to convergence and ranked by the paper's silhouette cost
+(eq. 11); the winner's mirror images and other branches (the ambiguities a silhouette
+leaves); and the distinct shapes among everything refined (the hypotheses the verdict
+weighs)."""
+from __future__ import annotations
+
+import numpy as np
+
+from .chain import Chain
+from .config import DEFAULT, FitConfig
+from .solver import levenberg_marquardt
+from .verdict import DISTINCT_TIP_M
+from .views import Field
+
+
+def refine(chain: Chain, fields: list[Field], starts: np.ndarray, silhouette_costs, pool: list | None = None,
+           cfg: FitConfig = DEFAULT):
+    """Local stage on candidate chains (B, n, 3): a few iterations on all at once, the
+    best cfg.refine (by the robust cost) to convergence, ranked by the silhouette cost (eq.
+    11). Returns (angles (n, 3), trace, eq.-11 cost) of the winner; appends every refined
+    chain as (eq.-11 cost, angles) to ``pool`` (the hypotheses the verdict weighs), with
+    the best cfg.alternatives screened candidates whose tips lie more than DISTINCT_TIP_M from
+    the refined ones' refined too (distinct shapes the robust cost ranked lower)."""
+    traces: list[list[np.ndarray]] = [[] for _ in starts]
+    params = starts.reshape(len(starts), -1)
+    params, cost, (r, J, _) = levenberg_marquardt(chain, fields, params, cfg.lm_screen, traces, cfg=cfg)
+    # Screened by the robust cost (ranking all by eq. 11 was measured no better on the
+    # samples and worse on sim captures); the silhouette cost (eq. 11) picks the winner.
+    # The screen's residuals carry over: no re-evaluation at the kept candidates.
+    keep = np.argsort(cost)[:cfg.refine]
+    if pool is not None and cfg.alternatives > 0 and len(cost) > cfg.refine:
+        # Distinct hypotheses: the best screened chains whose tips are far from every kept
+        # one's, refined like the winner so that their costs compare.
+        tips = chain.tips(params[:, :3 * chain.n].reshape(-1, chain.n, 3))
+        extra = []
+        for k in np.argsort(cost):
+            d = np.linalg.norm(tips[k] - tips[np.concatenate([keep, extra]).astype(int)], axis=1)
+            if np.all(d > DISTINCT_TIP_M) and k not in keep:
+                extra.append(k)
+                if len(extra) == cfg.alternatives:
+                    break
+        keep = np.concatenate([keep, np.array(extra, int)])
+    if cfg.refine_eq11 > 0 and len(cost) > cfg.refine:
+        # Plus the best screened ones by the silhouette cost: where the model cannot follow
+        # the tape (a tight curl at the tip) the robust boundary cost may prefer a wrong
+        # branch that eq. 11 does not (measured on sim tip-curl captures).
+        order = np.argsort(cost)
+        rest = order[cfg.refine:][cost[order[cfg.refine:]] < cfg.eq11_range * cost[order[0]]]
+        eq11 = silhouette_costs(params[rest, :3 * chain.n].reshape(-1, chain.n, 3))
+        keep = np.concatenate([keep, rest[np.argsort(eq11)[:cfg.refine_eq11]]]) if len(rest) else keep
+    sub_traces = [traces[k] for k in keep]
+    params, _, _ = levenberg_marquardt(chain, fields, params[keep], cfg.lm_iterations, sub_traces,
+                                       (r[keep], J[keep], cost[keep]), cfg)
+    refined = params[:, :3 * chain.n].reshape(-1, chain.n, 3)
+    costs = silhouette_costs(refined)
+    best = int(np.argmin(costs))
+    if pool is not None:
+        pool += [(float(c), a) for c, a in zip(costs, refined)]
+    return refined[best], sub_traces[best], float(costs[best])
+
+
+def mirrors(angles: np.ndarray) -> np.ndarray:
+    """(2, n, 3): ``angles`` with every out-of-plane bend mirrored (θy -> -θy), and with the
+    twist mirrored as well (the same silhouette seen from a camera facing the tape)."""
+    a, b = angles.copy(), angles.copy()
+    a[:, 1] *= -1
+    b[:, 1] *= -1
+    b[:, 0] *= -1
+    return np.array([a, b])
+
+
+def variants(angles: np.ndarray) -> np.ndarray:
+    """Chains near ``angles`` (n, 3) on other branches: from each joint on, the bend
+    mirrored (θy -> -θy) or the twist turned by ±π/2 or flipped in sign — the ambiguities
+    a silhouette leaves (a plate seen edge-on, a bend towards or away from a camera)."""
+    out = []
+    for j in range(len(angles)):
+        for kind in range(4):
+            a = angles.copy()
+            if kind == 0:
+                a[j:, 1] = -a[j:, 1]
+            elif kind == 1:
+                a[j, 0] = -a[j, 0]
+            else:
+                a[j, 0] += np.pi / 2 if kind == 2 else -np.pi / 2
+            out.append(a)
+    return np.array(out)
+
+
+def hypotheses(chain: Chain, pool: list, winner: np.ndarray) -> list:
+    """The distinct shapes among the refined chains ``pool`` [(eq.-11 cost, angles)]: best
+    first, each tip more than DISTINCT_TIP_M from the winner's plate fit and from every
+    better one's; as (cost, angles)."""
+    out, tips = [], [chain.tips(winner[None])[0]]
+    for cost, a in sorted(pool, key=lambda x: x[0]):
+        tip = chain.tips(a[None])[0]
+        if all(np.linalg.norm(tip - t) > DISTINCT_TIP_M for t in tips):
+            out.append((cost, a))
+            tips.append(tip)
+    return out
