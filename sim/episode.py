@@ -242,17 +242,72 @@ def resolve_by_probing(cell, sim_arm, est, width: float):
     order = sorted((d, k) for k, d in enumerate(found) if d is not None)
     # The closest touch confirms its hypothesis when it is close enough and clearly closer
     # than any other's (neighbouring hypotheses may both lie near the tape).
-    if not order or order[0][0] > PROBE_CONFIRM_M or (len(order) > 1 and order[1][0] < order[0][0] + PROBE_MARGIN_M):
+    best, reason = None, ""
+    if order and order[0][0] <= PROBE_CONFIRM_M and not (len(order) > 1 and order[1][0] < order[0][0] + PROBE_MARGIN_M):
+        best = order[0][1]
+        reason = f"hypothesis {best} confirmed by the needle ({1e3 * order[0][0]:.1f} mm from its tip)"
+    elif sum(d is not None and d <= PROBE_CONFIRM_M for d in found) > 1:
+        # Several tips lie on the tape (a fold's edge is tape as the true end is): probe
+        # where the shapes disagree instead, each at the point of its own end farthest from
+        # every other hypothesis; the one shape whose point is tape, and whose rivals' are
+        # not, is kept (its tip touched too).
+        sim_arm.select_tool("needle")
+        try:
+            k = _discriminate(cell, hypotheses, est, touch)
+        finally:
+            sim_arm.park()
+            sim_arm.select_tool("gripper")
+            sim_arm.open_gripper()
+        if k is not None and found[k] is not None and found[k] <= PROBE_CONFIRM_M:
+            best = k
+            reason = (f"hypothesis {best} confirmed by the needle where the hypotheses disagree "
+                      f"(its tip touched {1e3 * found[k]:.1f} mm away)")
+    if best is None:
         return est, report
-    best = order[0][1]
     tip, R, alt = hypotheses[best]
-    reason = f"hypothesis {best} confirmed by the needle ({1e3 * order[0][0]:.1f} mm from its tip)"
     if alt is None:
         return dataclasses.replace(est, verdict=Verdict.OK, verdict_reason=reason), report
     shape = forward_kinematics(est_spec(cell), alt.angles)
     return dataclasses.replace(est, angles=alt.angles, nodes=shape.nodes, tip_position=alt.tip_position,
                                tip_rotation=alt.tip_rotation, cost=alt.cost, verdict=Verdict.OK,
                                verdict_reason=reason), report
+
+
+DISCRIMINATE_M = 0.008
+"""A discriminating probe point lies at least this far from every other hypothesis' tape [m]."""
+
+
+def _discriminate(cell, hypotheses, est, touch) -> int | None:
+    """The one hypothesis the needle supports where the shapes disagree: for each, the point
+    of its last two plates (3 mm in from their edges) farthest from the other hypotheses'
+    plates (at least DISCRIMINATE_M), probed along its normal; supported when tape is touched
+    within PROBE_CONFIRM_M of it. None unless exactly one is supported."""
+    spec = est_spec(cell)
+    shapes = [forward_kinematics(spec, est.angles if alt is None else alt.angles) for _, _, alt in hypotheses]
+
+    def surface(shape, inset: float):
+        n = len(shape.nodes) - 1
+        pts, frames = [], []
+        for j in range(max(0, n - 2), n):
+            for t in np.linspace(0.0, 1.0, 16):
+                for w in np.linspace(-1.0, 1.0, 7):
+                    pts.append(shape.nodes[j] + t * (shape.nodes[j + 1] - shape.nodes[j])
+                               + w * (0.5 * spec.width - inset) * shape.frames[j + 1][:, 1])
+                    frames.append(shape.frames[j + 1])
+        return np.array(pts), frames
+
+    inner = [surface(sh, 0.003) for sh in shapes]
+    whole = [surface(sh, 0.0)[0] for sh in shapes]
+    supported = []
+    for k, (pts, frames) in enumerate(inner):
+        others = np.vstack([p for j, p in enumerate(whole) if j != k])
+        d = np.min(np.linalg.norm(pts[:, None] - others[None], axis=2), axis=1)
+        i = int(np.argmax(d))
+        if d[i] < DISCRIMINATE_M:
+            return None
+        hit = touch(f"discriminate {k}", pts[i], frames[i])
+        supported.append(hit is not None and hit <= PROBE_CONFIRM_M)
+    return supported.index(True) if sum(supported) == 1 else None
 
 
 def est_spec(cell):
