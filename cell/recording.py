@@ -63,6 +63,7 @@ import weakref
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
+import cv2
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
@@ -284,6 +285,12 @@ def log_view(stream: rr.RecordingStream, camera: Camera, mask: np.ndarray,
     if model_mask is not None:
         stream.log(f"{base}/model", rr.SegmentationImage(_class_image(model_mask, CLASS_MODEL),
                                                          opacity=0.5, draw_order=1.0))
+        # The model's outline on top: a mismatch with the observed mask shows at a glance.
+        contours, _ = cv2.findContours(np.asarray(model_mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        strips = [_rerun_pixels(np.vstack([c.reshape(-1, 2), c.reshape(-1, 2)[:1]]).astype(float))
+                  for c in contours if len(c) > 1]
+        stream.log(f"{base}/model_outline", rr.LineStrips2D(strips, radii=1.0, colors=[[255, 220, 0]],
+                                                            draw_order=3.0))
     if ignore is not None:
         stream.log(f"{base}/ignore", rr.SegmentationImage(_class_image(ignore, CLASS_IGNORE),
                                                           opacity=0.4, draw_order=2.0))
@@ -316,6 +323,30 @@ def _log_tape_shape(stream: rr.RecordingStream, base: str, spec: TapeSpec,
                                                   colors=[[0, 90, 200]]))
 
 
+def _log_alternative(stream: rr.RecordingStream, base: str, spec: TapeSpec, angles: np.ndarray) -> None:
+    """A hypothesis the verdict weighed: its centre line and plate outlines, faint."""
+    shape = forward_kinematics(spec, angles)
+    quads = shape.quads()
+    outlines = np.concatenate([quads, quads[:, :1]], axis=1)
+    stream.log(base, rr.LineStrips3D([shape.nodes] + list(outlines), radii=0.0002, colors=[[255, 140, 0, 90]]))
+
+
+def log_scene(stream: rr.RecordingStream, boxes: Sequence[Any], prefix: str | None = None) -> None:
+    """The scene's boxes (the part, the table) that may hide the tape."""
+    if not boxes:
+        return
+    stream.log(f"{_root(prefix)}world/scene", rr.Boxes3D(
+        centers=[b.center for b in boxes], half_sizes=[b.half for b in boxes],
+        quaternions=[rr.Quaternion(xyzw=_quat_xyzw(b.rotation)) for b in boxes],
+        labels=[b.name for b in boxes], colors=[[150, 150, 150, 120]], fill_mode="solid"), static=True)
+
+
+def _quat_xyzw(R: np.ndarray) -> list[float]:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(R, float)).as_quat().tolist()
+
+
 def log_estimate(stream: rr.RecordingStream, estimate: Estimate, spec: TapeSpec,
                  view_names: Sequence[str] | None = None, prefix: str | None = None) -> None:
     """The fitted tape in 3-D (centre line, nodes, plates), its tip frame and view costs.
@@ -331,6 +362,20 @@ def log_estimate(stream: rr.RecordingStream, estimate: Estimate, spec: TapeSpec,
     for name, cost in zip(names, np.asarray(estimate.view_costs, float)):
         stream.log(f"{root}estimator/view_cost/{name}", rr.Scalars([cost]))
     stream.log(f"{root}estimator/final_cost", rr.Scalars([float(estimate.cost)]))
+    verdict = getattr(estimate.verdict, "value", str(estimate.verdict))
+    lines = [f"verdict: {verdict}" + (f" ({estimate.verdict_reason})" if estimate.verdict_reason else ""),
+             f"cameras seeing the free end: {estimate.tip_views}",
+             f"cost (eq. 11): {float(estimate.cost):.4f}; per view: "
+             + ", ".join(f"{n} {c:.4f}" for n, c in zip(names, np.asarray(estimate.view_costs, float)))]
+    offsets = np.asarray(getattr(estimate, "view_offsets_px", ()), float)
+    if offsets.size:
+        lines.append("mean boundary distance px: " + ", ".join(f"{n} {o:.2f}" for n, o in zip(names, offsets)))
+    for k, alt in enumerate(estimate.alternatives):
+        d = 1e3 * float(np.linalg.norm(np.asarray(alt.tip_position) - estimate.tip_position))
+        lines.append(f"alternative {k}: cost {alt.cost:.4f}, tip {d:.0f} mm away")
+        _log_alternative(stream, f"{root}world/tape/alternatives/{k}", spec, alt.angles)
+    stream.log(f"{root}estimator/verdict", rr.TextLog("\n".join(lines),
+                                                     level="INFO" if verdict == "ok" else "WARN"))
 
 
 def log_cost(stream: rr.RecordingStream, iteration: int, cost: float,
@@ -387,9 +432,12 @@ def log_fit_result(stream: rr.RecordingStream, capture: Capture, estimate: Estim
         log_view(stream, view.camera, view.mask, image=view.image,
                  model_mask=model_silhouette(view.camera, capture.tape, estimate.angles),
                  ignore=view.ignore, prefix=prefix)
+    log_scene(stream, capture.scene, prefix)
     log_estimate(stream, estimate, capture.tape, [c.name for c in capture.cameras], prefix)
     if capture.truth is not None:
         log_truth(stream, capture.truth, prefix)
+        error_mm = 1e3 * float(np.linalg.norm(estimate.tip_position - capture.truth.tip_position))
+        stream.log(f"{_root(prefix)}estimator/tip_error_mm", rr.Scalars([error_mm]))
 
 
 def log_fit(stream: rr.RecordingStream, capture: Capture, estimate: Estimate,
