@@ -80,10 +80,6 @@ tip's window, longer than this [px] (about 10 mm at the tape): the tape goes on 
 model's end, such as an end seen edge-on as a thin sliver, which the mean boundary distance
 averages away (a wrong "ok" 60 mm off). 15 px refused good fits of curled ends, where an
 edge-on plate's thin line lies a few pixels off the observed one."""
-OVERSHOOT_PX = 60
-"""The same for model over background near the tip [px]: the model's end overshoots the
-tape. Larger: an edge-on end is a thin line whose offset of a few pixels leaves 40-50 px
-long slivers on good fits."""
 UNEXPLAINED_MIN_AREA_PX = 8
 """Regions smaller than this [px] are segmentation speckles, not tape."""
 DISTINCT_TIP_M = 0.010
@@ -190,32 +186,32 @@ def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: S
     return out
 
 
-def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray) -> tuple[float, float]:
-    """(tape, model): the longest region [px] (its bounding box's longer side), among those
-    reaching within END_WINDOW_PX of the tip's projection ``tip_px`` (crop coordinates), of
-    observed tape farther than UNEXPLAINED_MARGIN_PX from the model's silhouette (the tape
-    goes on past the model's end), and of model farther than that from observed tape (the
-    model overshoots it). uint8 0/1 crops alike."""
-    out = [0.0, 0.0]
+def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray) -> float:
+    """The longest region [px] (its bounding box's longer side) of observed tape farther than
+    UNEXPLAINED_MARGIN_PX from the model's silhouette that reaches within END_WINDOW_PX of
+    the tip's projection ``tip_px`` (crop coordinates): the tape going on past the model's
+    end. uint8 0/1 crops alike. (The reverse, model over background there, was measured
+    and dropped: an edge-on end is a thin line whose offset of a few pixels leaves 40-70 px
+    long slivers on good fits, and it caught no wrong fit.)"""
     if not np.all(np.isfinite(tip_px)):
-        return out[0], out[1]
+        return 0.0
     k = np.ones((2 * UNEXPLAINED_MARGIN_PX + 1,) * 2, np.uint8)
     h, w = observed.shape
     u, v = int(round(tip_px[0])), int(round(tip_px[1]))
     r = END_WINDOW_PX
     a0, a1, b0, b1 = max(0, v - r), min(h, v + r + 1), max(0, u - r), min(w, u + r + 1)
     if a1 <= a0 or b1 <= b0:
-        return out[0], out[1]
-    for i, (a, b) in enumerate(((observed, model), (model, observed))):
-        extra = cv2.bitwise_and(a, cv2.bitwise_not(cv2.dilate(b, k)) & 1)
-        if cv2.countNonZero(extra[a0:a1, b0:b1]) == 0:
-            continue
-        _, labels, stats, _ = cv2.connectedComponentsWithStats(extra, connectivity=8)
-        for label in np.unique(labels[a0:a1, b0:b1]):
-            _, _, bw, bh, area = stats[label]
-            if label and area >= UNEXPLAINED_MIN_AREA_PX:
-                out[i] = max(out[i], float(max(bw, bh)))
-    return out[0], out[1]
+        return 0.0
+    extra = cv2.bitwise_and(observed, cv2.bitwise_not(cv2.dilate(model, k)) & 1)
+    if cv2.countNonZero(extra[a0:a1, b0:b1]) == 0:
+        return 0.0
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(extra, connectivity=8)
+    best = 0.0
+    for label in np.unique(labels[a0:a1, b0:b1]):
+        _, _, bw, bh, area = stats[label]
+        if label and area >= UNEXPLAINED_MIN_AREA_PX:
+            best = max(best, float(max(bw, bh)))
+    return best
 
 
 def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray) -> bool:
@@ -295,12 +291,10 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
         for k, (v, o, m, xy) in enumerate(zip(views, observed, models, origins)):
             if not seen[k]:
                 continue
-            tape, over = unexplained_px(o, m, v.camera.project(tip_position[None])[0] - np.asarray(xy))
-            if tape > UNEXPLAINED_PX or over > OVERSHOOT_PX:
+            tape = unexplained_px(o, m, v.camera.project(tip_position[None])[0] - np.asarray(xy))
+            if tape > UNEXPLAINED_PX:
                 verdict, reason = Verdict.POOR_FIT, (
-                    f"view {k} shows tape past the model's end over {tape:.0f} px (> {UNEXPLAINED_PX} px)"
-                    if tape > UNEXPLAINED_PX else
-                    f"view {k} shows the model's end over background over {over:.0f} px (> {OVERSHOOT_PX} px)")
+                    f"view {k} shows tape past the model's end over {tape:.0f} px (> {UNEXPLAINED_PX} px)")
                 break
     parallax = _parallax_deg([v.camera.center for v, s_ in zip(views, seen) if s_], tip_position)
     if verdict is Verdict.OK and parallax < MIN_PARALLAX_DEG:
