@@ -51,21 +51,24 @@ def with_cameras(capture: Capture, cameras_file: Path) -> Capture:
 
 
 def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
-                config: Path | None = None, randomize: Any = None) -> dict[str, Any]:
+                config: Any = None, randomize: Any = None) -> dict[str, Any]:
     """Run one episode; returns its `tape-episode/1` dict. Errors the planner or the arm
     raise become the failure reason; anything else propagates. ``randomize``: a
     :class:`~tapecell.sim.randomize.Randomize` (default: the cell file's ``[randomize]``
-    table); the values drawn for this seed are in the result's ``randomize``."""
+    table); the values drawn for this seed are in the result's ``randomize``. ``config``: a
+    cell file's path, an already loaded :class:`~tapecell.cell.config.CellConfig` (what a
+    Ray task gets: the driver's file need not exist on the worker's machine), or None for
+    the bundled one."""
     from .arm import SimArm
     from .cell import SimCell
-    from tapecell.cell.config import load_cell_config
+    from tapecell.cell.config import CellConfig, load_cell_config
 
     from tapecell.cell.planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, plan_grasp
     from tapecell.cell.safety import SafetyLimits
 
     from .randomize import Randomize, apply_to_capture, apply_to_config, apply_to_model
 
-    cfg = load_cell_config(config)
+    cfg = config if isinstance(config, CellConfig) else load_cell_config(config)
     if randomize is None:
         randomize = Randomize.from_table(cfg.randomize, f"{cfg.source}: [randomize]")
     drawn = randomize.draw(seed)
@@ -346,11 +349,12 @@ def _record_motion(cell, sim_arm, stream) -> None:
     cell.step_hook = log
 
 
-def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Path | None) -> dict[str, Any]:
+def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Any,
+                       randomize: Any = None) -> dict[str, Any]:
     """:func:`run_episode` for batch runs: an unexpected error becomes a failed episode
     ("error: ...") instead of ending the batch."""
     try:
-        return run_episode(seed, cameras, recording, config)
+        return run_episode(seed, cameras, recording, config, randomize)
     except TapecellError as e:
         return _failed(seed, cameras, "error", str(e))
     except Exception as e:  # a bug must not lose the other episodes; the reason keeps the trace

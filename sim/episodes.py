@@ -1,5 +1,5 @@
-"""Many sim episodes: parallel processes, a progress line, a resumable results file and a
-summary.
+"""Many sim episodes: parallel processes or Ray tasks, a progress bar, a resumable results
+file and a summary.
 
 ``DIR/results.jsonl`` gets one `tape-episode/1` line as each episode ends (appended and
 flushed, so a crash loses nothing); a rerun skips the seeds already in it.
@@ -15,7 +15,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, TextIO
+from typing import Any, Callable, Iterable, Iterator, TextIO
 
 import numpy as np
 
@@ -33,8 +33,10 @@ class EpisodeJob:
     seed: int
     cameras: int
     recording: Path | None
-    config: Path | None
+    config: Any
     failures_only: bool = False
+    randomize: Any = None
+    """A :class:`~tapecell.sim.randomize.Randomize` (None: the cell file's table)."""
 
 
 def load_results(path: Path) -> list[dict[str, Any]]:
@@ -166,26 +168,54 @@ def summarize(results: list[dict[str, Any]], wall_s: float | None = None) -> str
     return "\n".join(lines)
 
 
-class Progress:
-    """A one-line progress bar on a terminal, plain lines otherwise (CI logs)."""
+def _clock(seconds: float) -> str:
+    """``h:mm:ss`` (or ``m:ss``) of a duration."""
+    if not math.isfinite(seconds):
+        return "--:--"
+    s = int(round(seconds))
+    h, s = divmod(s, 3600)
+    m, s = divmod(s, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
 
-    def __init__(self, total: int, stream: TextIO = sys.stderr):
-        self.total, self.done, self.ok, self.stream = total, 0, 0, stream
+
+class Progress:
+    """Progress of a campaign: on a terminal one line redrawn in place (a bar, done/total,
+    episodes per second, time left, counts by outcome); otherwise (a log, CI) one plain line
+    per episode with the same numbers."""
+
+    def __init__(self, total: int, stream: TextIO = sys.stderr, label: str = ""):
+        self.total, self.done, self.stream, self.label = total, 0, stream, label
+        self.counts: Counter = Counter()
         self.start = time.perf_counter()
-        self.tty = stream.isatty()
+        try:
+            self.tty = stream.isatty()
+        except (AttributeError, ValueError):
+            self.tty = False
+
+    def line(self, doc: dict[str, Any] | None = None) -> str:
+        elapsed = time.perf_counter() - self.start
+        rate = self.done / elapsed if elapsed > 0 else 0.0
+        left = (self.total - self.done) / rate if rate > 0 else math.inf
+        counts = f"grasped {self.counts['grasped']} refused {self.counts['refused']} failed {self.counts['failed']}"
+        head = f"{self.label} " if self.label else ""
+        if self.tty:
+            width = 24
+            filled = int(width * self.done / max(self.total, 1))
+            return (f"{head}[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
+                    f"{rate:.2f} ep/s  left {_clock(left)}  {counts}")
+        what = ""
+        if doc is not None:
+            what = f"  seed {doc.get('seed')} {outcome_of(doc)}" + (f" ({doc.get('failure')})" if doc.get("failure")
+                                                                    else "")
+        return (f"{head}{self.done}/{self.total} episodes  {rate:.2f} ep/s  elapsed {_clock(elapsed)}  "
+                f"left {_clock(left)}  {counts}{what}")
 
     def update(self, doc: dict[str, Any]) -> None:
         self.done += 1
-        self.ok += bool(doc.get("success"))
-        elapsed = time.perf_counter() - self.start
-        eta = elapsed / self.done * (self.total - self.done)
-        width = 30
-        filled = int(width * self.done / max(self.total, 1))
-        status = "ok" if doc.get("success") else f"FAIL ({doc.get('failure')})"
-        msg = (f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
-               f"ok {self.ok}  eta {eta:5.0f} s  seed {doc.get('seed')} {status}")
+        self.counts[outcome_of(doc)] += 1
+        msg = self.line(doc)
         if self.tty:
-            self.stream.write("\r" + msg.ljust(100))
+            self.stream.write("\r" + msg.ljust(110)[:200])
             if self.done == self.total:
                 self.stream.write("\n")
         else:
@@ -195,51 +225,120 @@ class Progress:
 
 def _worker(job: EpisodeJob) -> dict[str, Any]:
     from .episode import run_episode_safely
-    doc = run_episode_safely(job.seed, job.cameras, job.recording, job.config)
+    doc = run_episode_safely(job.seed, job.cameras, job.recording, job.config, job.randomize)
     if job.failures_only and doc.get("success") and job.recording is not None:
         job.recording.unlink(missing_ok=True)
         doc.pop("recording", None)
     return doc
 
 
+def worker_died(job: EpisodeJob, detail: str) -> dict[str, Any]:
+    """The result of an episode whose worker process died twice (a crash of MuJoCo, the GL
+    driver, the machine): reported as failed, so a campaign never hangs on it."""
+    return {"format": "tape-episode/1", "seed": int(job.seed), "cameras": int(job.cameras), "success": False,
+            "outcome": "failed", "verdict": None, "failure": "worker died", "detail": detail,
+            "tip_error_mm": None, "normal_error_deg": None, "time_s": {}}
+
+
 RRD_MODES = ("all", "failures")
+BACKENDS = ("process", "ray")
+MAX_ATTEMPTS = 2
+"""An episode whose worker dies is run once more; a second death is reported."""
+
+
+def _run_in_processes(job_list: list[EpisodeJob], jobs: int, worker: Callable[[EpisodeJob], dict]) -> Iterator[dict]:
+    """Run the jobs in ``jobs`` spawned processes, yielding each result as it ends. At most
+    ``jobs`` episodes are in flight, so a worker that dies (a segfault) breaks only those:
+    each is run again in a fresh pool, and one that was in flight at two deaths is reported
+    as "worker died"."""
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    # spawn: each worker builds its own MuJoCo renderer (EGL contexts do not survive fork)
+    ctx = mp.get_context("spawn")
+    queue = list(job_list)
+    queue.reverse()                       # pop() from the end: first seeds first
+    attempts: Counter = Counter()
+    while queue:
+        broken = False
+        with ProcessPoolExecutor(jobs, mp_context=ctx, max_tasks_per_child=50) as pool:
+            running: dict[Any, EpisodeJob] = {}
+            while (queue or running) and not broken:
+                while queue and len(running) < jobs:
+                    job = queue.pop()
+                    attempts[job.seed] += 1
+                    running[pool.submit(worker, job)] = job
+                done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+                for fut in done:
+                    job = running.pop(fut)
+                    try:
+                        yield fut.result()
+                    except BrokenProcessPool:
+                        broken = True
+                        if attempts[job.seed] >= MAX_ATTEMPTS:
+                            yield worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
+                        else:
+                            queue.append(job)
+            if broken:      # the others in flight died with the pool: run them again too
+                for fut, job in running.items():
+                    if attempts[job.seed] >= MAX_ATTEMPTS:
+                        yield worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
+                    else:
+                        queue.append(job)
+                pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _same_episode(doc: dict[str, Any], seed: int, cameras: int) -> bool:
+    """Whether result ``doc`` is episode (seed, cameras) of a campaign: its cameras, or any
+    when the episode drew its camera count (``randomize.cameras``)."""
+    return doc.get("seed") == seed and (doc.get("cameras") == cameras
+                                        or "cameras" in (doc.get("randomize") or {}))
 
 
 def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, rrd: str | None = None,
-                 config: Path | None = None, worker: Callable[[EpisodeJob], dict] = _worker) -> list[dict]:
+                 config: Any = None, worker: Callable[[EpisodeJob], dict] = _worker,
+                 backend: str = "process", address: str | None = None, randomize: Any = None,
+                 progress_stream: TextIO | None = None, label: str = "") -> list[dict]:
     """Run the episodes not yet in ``out/results.jsonl``; returns all results for these seeds.
+
     rrd: "all" writes OUT/episode-NNNN.rrd for every episode, "failures" keeps only those of
-    episodes that did not grasp, None none."""
+    episodes that did not grasp, None none. backend: "process" (a pool of ``jobs`` local
+    processes) or "ray" (Ray tasks: a local Ray of ``jobs`` CPUs started in-process and
+    bound to 127.0.0.1, or the running cluster at ``address`` HOST:PORT). Each result is
+    appended to results.jsonl as its episode ends, whatever the backend; the same seeds give
+    the same results on every backend. randomize: a :class:`~tapecell.sim.randomize.Randomize`
+    (None: the cell file's ``[randomize]`` table). config: a cell file's path or None."""
     if rrd not in (None,) + RRD_MODES:
         raise TapecellError(f"--rrd must be one of {', '.join(RRD_MODES)}, got {rrd!r}")
     if jobs < 1:
         raise TapecellError(f"--jobs must be 1 or more, got {jobs}")
+    if backend not in BACKENDS:
+        raise TapecellError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if address is not None and backend != "ray":
+        raise TapecellError("--address needs --backend ray")
     out.mkdir(parents=True, exist_ok=True)
     results_path = out / RESULTS
     seeds = list(seeds)
     _end_torn_line(results_path)
-    done = {(r["seed"], r.get("cameras")): r for r in load_results(results_path)}
-    todo = [s for s in seeds if (s, cameras) not in done]
+    have = load_results(results_path)
+    todo = [s for s in seeds if not any(_same_episode(r, s, cameras) for r in have)]
+    stream = progress_stream or sys.stderr
     if len(todo) < len(seeds):
         print(f"{len(seeds) - len(todo)} of {len(seeds)} episodes already in {results_path}; "
-              f"running {len(todo)}", file=sys.stderr)
-    job_list = [EpisodeJob(s, cameras, out / f"episode-{s:04d}.rrd" if rrd else None, config, rrd == "failures")
-                for s in todo]
-    progress = Progress(len(job_list))
-    new = []
-    if jobs == 1 or len(job_list) <= 1:
-        for job in job_list:
-            doc = worker(job)
-            append_result(results_path, doc)
-            new.append(doc)
-            progress.update(doc)
+              f"running {len(todo)}", file=stream)
+    job_list = [EpisodeJob(s, cameras, out / f"episode-{s:04d}.rrd" if rrd else None, config, rrd == "failures",
+                           randomize) for s in todo]
+    progress = Progress(len(job_list), stream, label)
+    if backend == "ray":
+        from .ray_backend import run_on_ray
+        docs: Iterable[dict] = run_on_ray(job_list, jobs, address, worker)
+    elif jobs == 1 or len(job_list) <= 1:
+        docs = (worker(job) for job in job_list)
     else:
-        # spawn: each worker builds its own MuJoCo renderer (EGL contexts do not survive fork)
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(jobs, maxtasksperchild=50) as pool:
-            for doc in pool.imap_unordered(worker, job_list):
-                append_result(results_path, doc)
-                new.append(doc)
-                progress.update(doc)
-    by_seed = {(r["seed"], r.get("cameras")): r for r in load_results(results_path)}
-    return [by_seed[(s, cameras)] for s in seeds if (s, cameras) in by_seed]
+        docs = _run_in_processes(job_list, jobs, worker)
+    for doc in docs:
+        append_result(results_path, doc)
+        progress.update(doc)
+    by_seed = {r["seed"]: r for r in load_results(results_path)
+               if isinstance(r.get("seed"), int) and _same_episode(r, r["seed"], cameras)}
+    return [by_seed[s] for s in seeds if s in by_seed]
