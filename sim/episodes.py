@@ -246,8 +246,9 @@ MAX_ATTEMPTS = 2
 """An episode whose worker dies is run once more; a second death is reported."""
 
 
-def _run_in_processes(job_list: list[EpisodeJob], jobs: int, worker: Callable[[EpisodeJob], dict]) -> Iterator[dict]:
-    """Run the jobs in ``jobs`` spawned processes, yielding each result as it ends. At most
+def _run_in_processes(job_list: list[EpisodeJob], jobs: int,
+                      worker: Callable[[EpisodeJob], dict]) -> Iterator[tuple[EpisodeJob, dict]]:
+    """Run the jobs in ``jobs`` spawned processes, yielding (job, result) as each ends. At most
     ``jobs`` episodes are in flight, so a worker that dies (a segfault) breaks only those:
     each is run again in a fresh pool, and one that was in flight at two deaths is reported
     as "worker died"."""
@@ -266,26 +267,43 @@ def _run_in_processes(job_list: list[EpisodeJob], jobs: int, worker: Callable[[E
             while (queue or running) and not broken:
                 while queue and len(running) < jobs:
                     job = queue.pop()
-                    attempts[job.seed] += 1
+                    attempts[id(job)] += 1
                     running[pool.submit(worker, job)] = job
                 done, _ = wait(list(running), return_when=FIRST_COMPLETED)
                 for fut in done:
                     job = running.pop(fut)
                     try:
-                        yield fut.result()
+                        doc = fut.result()
                     except BrokenProcessPool:
                         broken = True
-                        if attempts[job.seed] >= MAX_ATTEMPTS:
-                            yield worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
+                        if attempts[id(job)] >= MAX_ATTEMPTS:
+                            yield job, worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
                         else:
                             queue.append(job)
+                        continue
+                    yield job, doc
             if broken:      # the others in flight died with the pool: run them again too
                 for fut, job in running.items():
-                    if attempts[job.seed] >= MAX_ATTEMPTS:
-                        yield worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
+                    if attempts[id(job)] >= MAX_ATTEMPTS:
+                        yield job, worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
                     else:
                         queue.append(job)
                 pool.shutdown(wait=True, cancel_futures=True)
+
+
+def run_jobs(job_list: list[EpisodeJob], jobs: int = 1, backend: str = "process", address: str | None = None,
+             worker: Callable[[EpisodeJob], dict] = _worker) -> Iterator[tuple[EpisodeJob, dict]]:
+    """Run the jobs on ``backend``, yielding (job, result) as each episode ends."""
+    if backend not in BACKENDS:
+        raise TapecellError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if address is not None and backend != "ray":
+        raise TapecellError("--address needs --backend ray")
+    if backend == "ray":
+        from .ray_backend import run_on_ray
+        return run_on_ray(job_list, jobs, address, worker)
+    if jobs == 1 or len(job_list) <= 1:
+        return ((job, worker(job)) for job in job_list)
+    return _run_in_processes(job_list, jobs, worker)
 
 
 def _same_episode(doc: dict[str, Any], seed: int, cameras: int) -> bool:
@@ -320,8 +338,9 @@ def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, r
     results_path = out / RESULTS
     seeds = list(seeds)
     _end_torn_line(results_path)
-    have = load_results(results_path)
-    todo = [s for s in seeds if not any(_same_episode(r, s, cameras) for r in have)]
+    done = {r["seed"] for r in load_results(results_path)
+            if isinstance(r.get("seed"), int) and _same_episode(r, r["seed"], cameras)}
+    todo = [s for s in seeds if s not in done]
     stream = progress_stream or sys.stderr
     if len(todo) < len(seeds):
         print(f"{len(seeds) - len(todo)} of {len(seeds)} episodes already in {results_path}; "
@@ -329,14 +348,7 @@ def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, r
     job_list = [EpisodeJob(s, cameras, out / f"episode-{s:04d}.rrd" if rrd else None, config, rrd == "failures",
                            randomize) for s in todo]
     progress = Progress(len(job_list), stream, label)
-    if backend == "ray":
-        from .ray_backend import run_on_ray
-        docs: Iterable[dict] = run_on_ray(job_list, jobs, address, worker)
-    elif jobs == 1 or len(job_list) <= 1:
-        docs = (worker(job) for job in job_list)
-    else:
-        docs = _run_in_processes(job_list, jobs, worker)
-    for doc in docs:
+    for _, doc in run_jobs(job_list, jobs, backend, address, worker):
         append_result(results_path, doc)
         progress.update(doc)
     by_seed = {r["seed"]: r for r in load_results(results_path)

@@ -136,8 +136,8 @@ def _task(worker: Callable[[EpisodeJob], dict], job: EpisodeJob) -> tuple[dict, 
 
 
 def run_on_ray(job_list: list[EpisodeJob], jobs: int, address: str | None,
-               worker: Callable[[EpisodeJob], dict]) -> Iterator[dict]:
-    """Run the jobs as Ray tasks, yielding each result as its episode ends (in the order
+               worker: Callable[[EpisodeJob], dict]) -> Iterator[tuple[EpisodeJob, dict]]:
+    """Run the jobs as Ray tasks, yielding (job, result) as each episode ends (in the order
     they end) after writing its recording, if any, into place."""
     if not job_list:
         return
@@ -161,7 +161,7 @@ def run_on_ray(job_list: list[EpisodeJob], jobs: int, address: str | None,
             ready, _ = ray.wait(list(pending), num_returns=1)
             for ref in ready:
                 job = pending.pop(ref)
-                yield _collect(ray, ref, job)
+                yield job, _collect(ray, ref, job)
     finally:
         ray.shutdown()
 

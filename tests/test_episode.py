@@ -237,7 +237,7 @@ def test_campaign_keeps_only_the_failures_recordings(tmp_path, monkeypatch):
     from tapecell.sim import episode as episode_module
     from tapecell.sim.episodes import _worker
 
-    def fake(seed, cameras, recording, config):
+    def fake(seed, cameras, recording, config, randomize=None):
         recording.write_bytes(b"rrd")
         ok = seed % 2 == 0
         return {"format": "tape-episode/1", "seed": seed, "cameras": cameras, "success": ok,
