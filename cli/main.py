@@ -16,7 +16,7 @@ import threading
 from tapecell import __version__
 from tapecell.estimator.errors import TapecellError
 
-COMMANDS = ["estimate", "calibrate", "sim", "episode", "run", "probe"]
+COMMANDS = ["estimate", "calibrate", "sim", "episode", "sweep", "run", "probe"]
 
 EXIT_CODES = """exit status:
   0  done
