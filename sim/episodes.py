@@ -248,26 +248,47 @@ MAX_ATTEMPTS = 2
 
 def _run_in_processes(job_list: list[EpisodeJob], jobs: int,
                       worker: Callable[[EpisodeJob], dict]) -> Iterator[tuple[EpisodeJob, dict]]:
-    """Run the jobs in ``jobs`` spawned processes, yielding (job, result) as each ends. At most
-    ``jobs`` episodes are in flight, so a worker that dies (a segfault) breaks only those:
-    each is run again in a fresh pool, and one that was in flight at two deaths is reported
-    as "worker died"."""
+    """Run the jobs in ``jobs`` spawned processes, yielding (job, result) as each ends.
+
+    At most ``jobs`` episodes are in flight. A worker process that dies (a segfault, the
+    OOM killer) breaks the pool and every episode in flight with it; which one caused it is
+    not known, so each is run again on its own, where a death is its own. An episode that
+    dies on its own ``MAX_ATTEMPTS`` times (or once after dying alone in the pool) is
+    reported as failed ("worker died"); the others go on."""
+    from collections import deque
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
 
     # spawn: each worker builds its own MuJoCo renderer (EGL contexts do not survive fork)
     ctx = mp.get_context("spawn")
-    queue = list(job_list)
-    queue.reverse()                       # pop() from the end: first seeds first
-    attempts: Counter = Counter()
-    while queue:
-        broken = False
+    queue = deque(job_list)
+    solo: deque = deque()
+    deaths: Counter = Counter()          # deaths while running alone: certainly its own
+
+    def died(job: EpisodeJob) -> dict | None:
+        deaths[id(job)] += 1
+        if deaths[id(job)] >= MAX_ATTEMPTS:
+            return worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
+        solo.append(job)
+        return None
+
+    while queue or solo:
+        if solo:
+            job = solo.popleft()
+            with ProcessPoolExecutor(1, mp_context=ctx) as one:
+                try:
+                    doc = one.submit(worker, job).result()
+                except BrokenProcessPool:
+                    doc = died(job)
+            if doc is not None:
+                yield job, doc
+            continue
         with ProcessPoolExecutor(jobs, mp_context=ctx, max_tasks_per_child=50) as pool:
             running: dict[Any, EpisodeJob] = {}
+            broken: list[EpisodeJob] = []
             while (queue or running) and not broken:
                 while queue and len(running) < jobs:
-                    job = queue.pop()
-                    attempts[id(job)] += 1
+                    job = queue.popleft()
                     running[pool.submit(worker, job)] = job
                 done, _ = wait(list(running), return_when=FIRST_COMPLETED)
                 for fut in done:
@@ -275,20 +296,17 @@ def _run_in_processes(job_list: list[EpisodeJob], jobs: int,
                     try:
                         doc = fut.result()
                     except BrokenProcessPool:
-                        broken = True
-                        if attempts[id(job)] >= MAX_ATTEMPTS:
-                            yield job, worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
-                        else:
-                            queue.append(job)
+                        broken.append(job)
                         continue
                     yield job, doc
-            if broken:      # the others in flight died with the pool: run them again too
-                for fut, job in running.items():
-                    if attempts[id(job)] >= MAX_ATTEMPTS:
-                        yield job, worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
-                    else:
-                        queue.append(job)
-                pool.shutdown(wait=True, cancel_futures=True)
+            if broken:
+                broken += list(running.values())      # in flight when the pool broke: died with it
+                if len(broken) == 1:                   # it was alone: its own death
+                    doc = died(broken[0])
+                    if doc is not None:
+                        yield broken[0], doc
+                else:
+                    solo.extend(broken)
 
 
 def run_jobs(job_list: list[EpisodeJob], jobs: int = 1, backend: str = "process", address: str | None = None,
