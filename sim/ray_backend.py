@@ -115,11 +115,27 @@ def connect(ray, jobs: int, address: str | None) -> None:
         return
     host, _ = check_reachable(address)
     extra = {"_node_ip_address": LOCAL_NODE_IP} if is_loopback(host) else {}
+    _use_auth_token_if_any()
     try:
         ray.init(address=address, namespace="tapecell", **extra, **quiet)
     except (ConnectionError, TimeoutError, RuntimeError, ValueError) as e:
         raise ClusterError(f"--address {address}: could not join the Ray cluster ({' '.join(str(e).split())[:200]})") \
             from None
+
+
+def _use_auth_token_if_any() -> None:
+    """Ray 2.60 clusters started by ``ray start`` use token authentication when a token is
+    there (``~/.ray/auth_token``, ``RAY_AUTH_TOKEN``); Ray's driver sends it on its own only
+    to a cluster it finds itself, not to an explicit address. Send it when we have one (as
+    Ray does for ``address="auto"``), unless ``RAY_AUTH_MODE`` says otherwise."""
+    if "RAY_AUTH_MODE" in os.environ:
+        return
+    try:
+        from ray._private.authentication.authentication_token_setup import (
+            maybe_enable_token_auth_if_token_available)
+    except ImportError:       # another Ray version: RAY_AUTH_MODE=token does the same
+        return
+    maybe_enable_token_auth_if_token_available(warn_if_disabled=False)
 
 
 def _task(worker: Callable[[EpisodeJob], dict], job: EpisodeJob) -> tuple[dict, bytes | None]:
