@@ -331,6 +331,14 @@ def _same_episode(doc: dict[str, Any], seed: int, cameras: int) -> bool:
                                         or "cameras" in (doc.get("randomize") or {}))
 
 
+def done_seeds(results: list[dict[str, Any]], cameras: int) -> set[int]:
+    """The seeds a rerun skips: those with a result, except an episode whose worker died
+    (the machine's fault, not the episode's: a rerun runs it again, and its new line
+    replaces the old one)."""
+    return {r["seed"] for r in results if isinstance(r.get("seed"), int) and _same_episode(r, r["seed"], cameras)
+            and r.get("failure") != "worker died"}
+
+
 def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, rrd: str | None = None,
                  config: Any = None, worker: Callable[[EpisodeJob], dict] = _worker,
                  backend: str = "process", address: str | None = None, randomize: Any = None,
@@ -356,8 +364,7 @@ def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, r
     results_path = out / RESULTS
     seeds = list(seeds)
     _end_torn_line(results_path)
-    done = {r["seed"] for r in load_results(results_path)
-            if isinstance(r.get("seed"), int) and _same_episode(r, r["seed"], cameras)}
+    done = done_seeds(load_results(results_path), cameras)
     todo = [s for s in seeds if s not in done]
     stream = progress_stream or sys.stderr
     if len(todo) < len(seeds):

@@ -169,11 +169,17 @@ def run_on_ray(job_list: list[EpisodeJob], jobs: int, address: str | None,
     try:
         task = ray.remote(num_cpus=1, max_retries=MAX_ATTEMPTS - 1, retry_exceptions=False)(_task)
         worker_ref = ray.put(worker)
+        # Tasks in flight: enough to keep every CPU of the cluster busy, not all of a
+        # 10,000-episode campaign at once (ray.wait over every pending task per result
+        # would cost the driver O(n^2)).
+        limit = max(16, 2 * int(ray.cluster_resources().get("CPU", jobs)))
+        queue = list(reversed(job_list))
         pending: dict[Any, EpisodeJob] = {}
-        for job in job_list:
-            sent = dataclasses.replace(job, config=configs.get(job.config, job.config))
-            pending[task.remote(worker_ref, sent)] = job
-        while pending:
+        while queue or pending:
+            while queue and len(pending) < limit:
+                job = queue.pop()
+                sent = dataclasses.replace(job, config=configs.get(job.config, job.config))
+                pending[task.remote(worker_ref, sent)] = job
             ready, _ = ray.wait(list(pending), num_returns=1)
             for ref in ready:
                 job = pending.pop(ref)

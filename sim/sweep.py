@@ -24,7 +24,7 @@ import numpy as np
 from tapecell.estimator.errors import TapecellError
 from tapecell.estimator.io import atomic_write_text
 
-from .episodes import (RESULTS, EpisodeJob, Progress, _end_torn_line, _same_episode, _worker, append_result,
+from .episodes import (RESULTS, EpisodeJob, Progress, _end_torn_line, _same_episode, _worker, append_result, done_seeds,
                        load_results, outcome_of, run_jobs, wilson_interval)
 from .randomize import CHOICES, NAMES, Randomize, RandomizeError, parse_value
 
@@ -162,8 +162,7 @@ def run_sweep(params: list[Param], n: int, seed: int, out: Path, jobs: int = 1, 
         cell.folder.mkdir(parents=True, exist_ok=True)
         path = cell.folder / RESULTS
         _end_torn_line(path)
-        done = {r["seed"] for r in load_results(path) if isinstance(r.get("seed"), int)
-                and _same_episode(r, r["seed"], cell.cameras)}
+        done = done_seeds(load_results(path), cell.cameras)
         for s in seeds:
             if s not in done:
                 job = EpisodeJob(s, cell.cameras, cell.folder / f"episode-{s:04d}.rrd" if rrd else None, config,

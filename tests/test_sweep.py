@@ -199,3 +199,23 @@ def test_process_pool_survives_a_dead_worker(tmp_path, monkeypatch):
     bad = [r for r in results if not r["success"]]
     assert [(r["seed"], r["failure"], r["outcome"]) for r in bad] == [(3, "worker died", "failed")]
     assert (tmp_path / "marker").exists()          # seed 5 died once and was run again
+
+
+def test_rerun_runs_again_an_episode_whose_worker_died(tmp_path):
+    from tapecell.sim.episodes import append_result, worker_died
+
+    out = tmp_path / "c"
+    out.mkdir()
+    append_result(out / "results.jsonl", worker_died(EpisodeJob(2, 2, None, None), "machine lost"))
+    calls = []
+
+    def worker(job):
+        calls.append(job.seed)
+        return {"format": "tape-episode/1", "seed": job.seed, "cameras": job.cameras, "success": True,
+                "outcome": "grasped"}
+
+    results = run_episodes(range(4), 2, out, worker=worker, progress_stream=io.StringIO())
+    assert calls == [0, 1, 2, 3]
+    assert [r["outcome"] for r in results] == ["grasped"] * 4      # the new line replaces the old
+    assert run_episodes(range(4), 2, out, worker=worker, progress_stream=io.StringIO()) == results
+    assert calls == [0, 1, 2, 3]
