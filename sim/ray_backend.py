@@ -23,6 +23,7 @@ import ipaddress
 import logging
 import os
 import socket
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -51,16 +52,17 @@ def import_ray(loopback: bool = True):
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")   # never send usage statistics anywhere
     if loopback:
         os.environ[LOOPBACK_ENV] = "0"
+    elif os.environ.get(LOOPBACK_ENV) == "0":
+        del os.environ[LOOPBACK_ENV]                          # set by an earlier local run
     try:
         import ray
     except ImportError:
         raise TapecellError("--backend ray needs Ray, an optional dependency: pip install \"tapecell[ray]\"") from None
     import ray._private.ray_constants as constants
 
-    if loopback:
-        # Already imported before the variable was set (a test, a notebook): the constant
-        # is read at call time.
-        constants.ENABLE_RAY_CLUSTER = False
+    # Ray may have been imported before the variable was set (a test, a notebook): the
+    # constant is read at call time.
+    constants.ENABLE_RAY_CLUSTER = not loopback and sys.platform.startswith("linux")
     for name in ("ray._private.authentication.authentication_token_setup", "ray._private.authentication"):
         logging.getLogger(name).setLevel(logging.ERROR)    # "token authentication is enabled" on every start
     return ray

@@ -219,3 +219,13 @@ def test_rerun_runs_again_an_episode_whose_worker_died(tmp_path):
     assert [r["outcome"] for r in results] == ["grasped"] * 4      # the new line replaces the old
     assert run_episodes(range(4), 2, out, worker=worker, progress_stream=io.StringIO()) == results
     assert calls == [0, 1, 2, 3]
+
+
+def test_ray_backend_without_ray_says_how_to_install(tmp_path, capsys, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "ray", None)       # import ray -> ImportError
+    code = main(["episodes", "--n", "1", "--backend", "ray", "--out", str(tmp_path / "o")])
+    out, err = capsys.readouterr()
+    assert code == 2 and err.count("\n") == 1 and 'pip install "tapecell[ray]"' in err
+    assert not (tmp_path / "o").exists()
