@@ -247,7 +247,13 @@ def reasons_plot(rows: list[dict], per_cell: list[list[dict]]) -> bytes:
     ax.xaxis(0.0, n_max * 1.05, "episodes", [t for t in _ticks(0.0, n_max * 1.05) if float(t).is_integer()],
              fmt=lambda v: f"{v:.0f}")
     ax.ylo, ax.yhi = len(rows) - 0.5, -0.5
-    colors = {k: PALETTE[(3 + i) % len(PALETTE)] for i, k in enumerate(reasons)}
+    # failures (acted, not taken) in warm colours, refusals (safe) in cool ones
+    warm = [(40, 39, 214), (14, 127, 255), (34, 189, 188), (75, 86, 140), (194, 119, 227)]
+    cool = [(189, 103, 148), (180, 119, 31), (207, 190, 23), (44, 160, 44), (127, 127, 127)]
+    failed = [k for k in reasons if k.startswith("failed")]
+    other = [k for k in reasons if not k.startswith("failed")]
+    colors = {k: warm[i % len(warm)] for i, k in enumerate(failed)}
+    colors.update({k: cool[i % len(cool)] for i, k in enumerate(other)})
     for i, (label, c, row) in enumerate(zip(labels, counts, rows)):
         y = ax.py(i)
         _put(ax.img, label, ax.x0 - 8, y, 0.42, align="right", valign="middle")
