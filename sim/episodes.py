@@ -252,9 +252,9 @@ def _run_in_processes(job_list: list[EpisodeJob], jobs: int,
 
     At most ``jobs`` episodes are in flight. A worker process that dies (a segfault, the
     OOM killer) breaks the pool and every episode in flight with it; which one caused it is
-    not known, so each is run again on its own, where a death is its own. An episode that
-    dies on its own ``MAX_ATTEMPTS`` times (or once after dying alone in the pool) is
-    reported as failed ("worker died"); the others go on."""
+    not known, so each is run again on its own, where a death is its own. An episode whose
+    worker dies ``MAX_ATTEMPTS`` times while it ran alone (on its own, or as the last one in
+    the pool) is reported as failed ("worker died"); the others go on."""
     from collections import deque
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool

@@ -113,7 +113,11 @@ def connect(ray, jobs: int, address: str | None) -> None:
     quiet = dict(log_to_driver=False, logging_level=logging.WARNING, include_dashboard=False)
     if address is None:
         # "local": always a new Ray of our own, never one found on the machine
-        ray.init(address="local", num_cpus=jobs, _node_ip_address=LOCAL_NODE_IP, namespace="tapecell", **quiet)
+        try:
+            ray.init(address="local", num_cpus=jobs, _node_ip_address=LOCAL_NODE_IP, namespace="tapecell", **quiet)
+        except (ConnectionError, TimeoutError, RuntimeError, ValueError, OSError) as e:
+            raise ClusterError(f"--backend ray: could not start a local Ray ({' '.join(str(e).split())[:200]})") \
+                from None
         return
     host, _ = check_reachable(address)
     extra = {"_node_ip_address": LOCAL_NODE_IP} if is_loopback(host) else {}
