@@ -128,12 +128,13 @@ class SimArm:
         dt = self.cell.model.opt.timestep
         duration = max(dist / speed, angle / 1.0, dt)
         n_way = max(1, int(np.ceil(duration / dt / _WAYPOINT_STEPS)))
-        slerp = Slerp([0.0, 1.0], rots)
+        # every waypoint's orientation in one call (a call per waypoint cost more than the physics)
+        turns = Slerp([0.0, 1.0], rots)(np.arange(1, n_way + 1) / n_way).as_matrix()
         q_prev = self.cell.data.ctrl[self.cell.arm_actuators].copy()
         for k in range(1, n_way + 1):
             s = k / n_way
             T = np.eye(4)
-            T[:3, :3] = slerp([s]).as_matrix()[0]
+            T[:3, :3] = turns[k - 1]
             T[:3, 3] = start[:3, 3] + s * (target[:3, 3] - start[:3, 3])
             q_next = q_goal if k == n_way else self.ik(T, tool, q_prev)
             for i in range(1, _WAYPOINT_STEPS + 1):

@@ -6,6 +6,7 @@ tape's tip followed the gripper through the lift. The result is a `tape-episode/
 """
 from __future__ import annotations
 
+import atexit
 import dataclasses
 
 import time
@@ -51,21 +52,23 @@ def with_cameras(capture: Capture, cameras_file: Path) -> Capture:
 
 
 def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
-                config: Path | None = None, randomize: Any = None) -> dict[str, Any]:
+                config: Any = None, randomize: Any = None) -> dict[str, Any]:
     """Run one episode; returns its `tape-episode/1` dict. Errors the planner or the arm
     raise become the failure reason; anything else propagates. ``randomize``: a
     :class:`~tapecell.sim.randomize.Randomize` (default: the cell file's ``[randomize]``
-    table); the values drawn for this seed are in the result's ``randomize``."""
+    table); the values drawn for this seed are in the result's ``randomize``. ``config``: a
+    cell file's path, an already loaded :class:`~tapecell.cell.config.CellConfig` (what a
+    Ray task gets: the driver's file need not exist on the worker's machine), or None for
+    the bundled one."""
     from .arm import SimArm
-    from .cell import SimCell
-    from tapecell.cell.config import load_cell_config
+    from tapecell.cell.config import CellConfig, load_cell_config
 
     from tapecell.cell.planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, plan_grasp
     from tapecell.cell.safety import SafetyLimits
 
     from .randomize import Randomize, apply_to_capture, apply_to_config, apply_to_model
 
-    cfg = load_cell_config(config)
+    cfg = config if isinstance(config, CellConfig) else load_cell_config(config)
     if randomize is None:
         randomize = Randomize.from_table(cfg.randomize, f"{cfg.source}: [randomize]")
     drawn = randomize.draw(seed)
@@ -78,13 +81,14 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     if drawn:
         doc["randomize"] = drawn
     stream = cell = None
+    errored = False
     if recording is not None:
         from tapecell.cell import recording as rec
         stream = rec.open_recording(recording, app_id="tapecell-episode",
                                     camera_names=[p.name for p in cfg.camera_placements(cameras)])
     try:
         t0 = time.perf_counter()
-        cell = SimCell(cfg, seed=seed, n_cameras=cameras, tool="gripper")
+        cell = _cell_for(cfg, seed, cameras)
         apply_to_model(cell.model, drawn)
         sim_arm = SimArm(cell, tool="gripper")
         sim_arm.open_gripper()
@@ -163,18 +167,62 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             doc["detail"] = outcome.detail
         return doc
     except BaseException:
+        errored = True
         if stream is not None:          # an error, not a failed grasp: no partial recording
             rec.discard_recording(stream)
             stream = None
         raise
     finally:
-        if cell is not None:
+        if cell is not None and not _keep(cell, ok=not errored):
             cell.close()  # free the renderers' GL contexts, also after a refusal or an error
         doc["time_s"] = {k: round(v, 4) for k, v in times.items()}
         if stream is not None:
             rec.log_result(stream, {k: v for k, v in doc.items() if not isinstance(v, dict)})
             rec.close_recording(stream)
             doc["recording"] = Path(recording).name
+
+
+REUSE_CELL = True
+"""Keep the last episode's simulated cell (model, data, renderer) in this process and reuse
+it for the next episode of the same cell config (``SimCell.reuse``): the results are the
+same as with a new cell, without building the model and the EGL renderer again."""
+_cache: dict[str, Any] = {}
+atexit.register(lambda: release_cell())
+
+
+def _cell_for(cfg, seed: int, cameras: int):
+    """A SimCell of ``cfg`` with ``cameras`` cameras at ``seed``, gripper mounted: the
+    process's kept one when it matches, else a new one."""
+    import pickle
+
+    from .cell import SimCell
+
+    key = (pickle.dumps(cfg), int(cameras))
+    cell = _cache.pop("cell", None)
+    if cell is not None:
+        if REUSE_CELL and _cache.get("key") == key:
+            cell.reuse(seed)
+            return cell
+        cell.close()
+    _cache["key"] = key
+    return SimCell(cfg, seed=seed, n_cameras=cameras, tool="gripper")
+
+
+def _keep(cell, ok: bool) -> bool:
+    """Keep ``cell`` for the next episode (after an episode that ended normally)."""
+    if REUSE_CELL and ok:
+        _cache["cell"] = cell
+        return True
+    _cache.clear()
+    return False
+
+
+def release_cell() -> None:
+    """Close the kept cell (its GL context), e.g. before a process forks or exits."""
+    cell = _cache.pop("cell", None)
+    _cache.clear()
+    if cell is not None:
+        cell.close()
 
 
 PROBE_CONFIRM_M = 0.004
@@ -401,7 +449,7 @@ def _record_motion(cell, sim_arm, stream) -> None:
     cell.step_hook = log
 
 
-def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Path | None,
+def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Any,
                        randomize: Any = None) -> dict[str, Any]:
     """:func:`run_episode` for batch runs: an unexpected error becomes a failed episode
     ("error: ...") instead of ending the batch."""

@@ -1,5 +1,5 @@
-"""Many sim episodes: parallel processes, a progress line, a resumable results file and a
-summary.
+"""Many sim episodes: parallel processes or Ray tasks, a progress bar, a resumable results
+file and a summary.
 
 ``DIR/results.jsonl`` gets one `tape-episode/1` line as each episode ends (appended and
 flushed, so a crash loses nothing); a rerun skips the seeds already in it.
@@ -15,7 +15,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable, TextIO
+from typing import Any, Callable, Iterable, Iterator, TextIO
 
 import numpy as np
 
@@ -33,7 +33,7 @@ class EpisodeJob:
     seed: int
     cameras: int
     recording: Path | None
-    config: Path | None
+    config: Any
     failures_only: bool = False
     randomize: Any = None
     """A :class:`~tapecell.sim.randomize.Randomize` (None: the cell file's table)."""
@@ -168,27 +168,54 @@ def summarize(results: list[dict[str, Any]], wall_s: float | None = None) -> str
     return "\n".join(lines)
 
 
-class Progress:
-    """A one-line progress bar on a terminal, plain lines otherwise (CI logs)."""
+def _clock(seconds: float) -> str:
+    """``h:mm:ss`` (or ``m:ss``) of a duration."""
+    if not math.isfinite(seconds):
+        return "--:--"
+    s = int(round(seconds))
+    h, s = divmod(s, 3600)
+    m, s = divmod(s, 60)
+    return f"{h}:{m:02d}:{s:02d}" if h else f"{m}:{s:02d}"
 
-    def __init__(self, total: int, stream: TextIO = sys.stderr):
-        self.total, self.done, self.ok, self.stream = total, 0, 0, stream
+
+class Progress:
+    """Progress of a campaign: on a terminal one line redrawn in place (a bar, done/total,
+    episodes per second, time left, counts by outcome); otherwise (a log, CI) one plain line
+    per episode with the same numbers."""
+
+    def __init__(self, total: int, stream: TextIO = sys.stderr, label: str = ""):
+        self.total, self.done, self.stream, self.label = total, 0, stream, label
+        self.counts: Counter = Counter()
         self.start = time.perf_counter()
-        self.tty = stream.isatty()
+        try:
+            self.tty = stream.isatty()
+        except (AttributeError, ValueError):
+            self.tty = False
+
+    def line(self, doc: dict[str, Any] | None = None) -> str:
+        elapsed = time.perf_counter() - self.start
+        rate = self.done / elapsed if elapsed > 0 else 0.0
+        left = (self.total - self.done) / rate if rate > 0 else math.inf
+        counts = f"grasped {self.counts['grasped']} refused {self.counts['refused']} failed {self.counts['failed']}"
+        head = f"{self.label} " if self.label else ""
+        if self.tty:
+            width = 24
+            filled = int(width * self.done / max(self.total, 1))
+            return (f"{head}[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
+                    f"{rate:.2f} ep/s  left {_clock(left)}  {counts}")
+        what = ""
+        if doc is not None:
+            what = f"  seed {doc.get('seed')} {outcome_of(doc)}" + (f" ({doc.get('failure')})" if doc.get("failure")
+                                                                    else "")
+        return (f"{head}{self.done}/{self.total} episodes  {rate:.2f} ep/s  elapsed {_clock(elapsed)}  "
+                f"left {_clock(left)}  {counts}{what}")
 
     def update(self, doc: dict[str, Any]) -> None:
         self.done += 1
-        self.ok += bool(doc.get("success"))
-        elapsed = time.perf_counter() - self.start
-        eta = elapsed / self.done * (self.total - self.done)
-        width = 30
-        filled = int(width * self.done / max(self.total, 1))
-        status = "ok" if doc.get("success") else f"FAIL ({doc.get('failure')})"
-        rate = self.done / max(elapsed, 1e-9)
-        msg = (f"[{'#' * filled}{'.' * (width - filled)}] {self.done}/{self.total} "
-               f"ok {self.ok}  {rate:.2f}/s  eta {eta:5.0f} s  seed {doc.get('seed')} {status}")
+        self.counts[outcome_of(doc)] += 1
+        msg = self.line(doc)
         if self.tty:
-            self.stream.write("\r" + msg.ljust(100))
+            self.stream.write("\r" + msg.ljust(110)[:200])
             if self.done == self.total:
                 self.stream.write("\n")
         else:
@@ -205,20 +232,126 @@ def _worker(job: EpisodeJob) -> dict[str, Any]:
     return doc
 
 
+def worker_died(job: EpisodeJob, detail: str) -> dict[str, Any]:
+    """The result of an episode whose worker process died twice (a crash of MuJoCo, the GL
+    driver, the machine): reported as failed, so a campaign never hangs on it."""
+    return {"format": "tape-episode/1", "seed": int(job.seed), "cameras": int(job.cameras), "success": False,
+            "outcome": "failed", "verdict": None, "failure": "worker died", "detail": detail,
+            "tip_error_mm": None, "normal_error_deg": None, "time_s": {}}
+
+
 RRD_MODES = ("all", "failures")
 BACKENDS = ("process", "ray")
+MAX_ATTEMPTS = 2
+"""An episode whose worker dies is run once more; a second death is reported."""
+
+
+def _run_in_processes(job_list: list[EpisodeJob], jobs: int,
+                      worker: Callable[[EpisodeJob], dict]) -> Iterator[tuple[EpisodeJob, dict]]:
+    """Run the jobs in ``jobs`` spawned processes, yielding (job, result) as each ends.
+
+    At most ``jobs`` episodes are in flight. A worker process that dies (a segfault, the
+    OOM killer) breaks the pool and every episode in flight with it; which one caused it is
+    not known, so each is run again on its own, where a death is its own. An episode whose
+    worker dies ``MAX_ATTEMPTS`` times while it ran alone (on its own, or as the last one in
+    the pool) is reported as failed ("worker died"); the others go on."""
+    from collections import deque
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    # spawn: each worker builds its own MuJoCo renderer (EGL contexts do not survive fork)
+    ctx = mp.get_context("spawn")
+    queue = deque(job_list)
+    solo: deque = deque()
+    deaths: Counter = Counter()          # deaths while running alone: certainly its own
+
+    def died(job: EpisodeJob) -> dict | None:
+        deaths[id(job)] += 1
+        if deaths[id(job)] >= MAX_ATTEMPTS:
+            return worker_died(job, f"its worker process died on each of {MAX_ATTEMPTS} attempts")
+        solo.append(job)
+        return None
+
+    while queue or solo:
+        if solo:
+            job = solo.popleft()
+            with ProcessPoolExecutor(1, mp_context=ctx) as one:
+                try:
+                    doc = one.submit(worker, job).result()
+                except BrokenProcessPool:
+                    doc = died(job)
+            if doc is not None:
+                yield job, doc
+            continue
+        with ProcessPoolExecutor(jobs, mp_context=ctx, max_tasks_per_child=50) as pool:
+            running: dict[Any, EpisodeJob] = {}
+            broken: list[EpisodeJob] = []
+            while (queue or running) and not broken:
+                while queue and len(running) < jobs:
+                    job = queue.popleft()
+                    running[pool.submit(worker, job)] = job
+                done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+                for fut in done:
+                    job = running.pop(fut)
+                    try:
+                        doc = fut.result()
+                    except BrokenProcessPool:
+                        broken.append(job)
+                        continue
+                    yield job, doc
+            if broken:
+                broken += list(running.values())      # in flight when the pool broke: died with it
+                if len(broken) == 1:                   # it was alone: its own death
+                    doc = died(broken[0])
+                    if doc is not None:
+                        yield broken[0], doc
+                else:
+                    solo.extend(broken)
+
+
+def run_jobs(job_list: list[EpisodeJob], jobs: int = 1, backend: str = "process", address: str | None = None,
+             worker: Callable[[EpisodeJob], dict] = _worker) -> Iterator[tuple[EpisodeJob, dict]]:
+    """Run the jobs on ``backend``, yielding (job, result) as each episode ends."""
+    if backend not in BACKENDS:
+        raise TapecellError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    if address is not None and backend != "ray":
+        raise TapecellError("--address needs --backend ray")
+    if backend == "ray":
+        from .ray_backend import run_on_ray
+        return run_on_ray(job_list, jobs, address, worker)
+    if jobs == 1 or len(job_list) <= 1:
+        return ((job, worker(job)) for job in job_list)
+    return _run_in_processes(job_list, jobs, worker)
+
+
+def _same_episode(doc: dict[str, Any], seed: int, cameras: int) -> bool:
+    """Whether result ``doc`` is episode (seed, cameras) of a campaign: its cameras, or any
+    when the episode drew its camera count (``randomize.cameras``)."""
+    return doc.get("seed") == seed and (doc.get("cameras") == cameras
+                                        or "cameras" in (doc.get("randomize") or {}))
+
+
+def done_seeds(results: list[dict[str, Any]], cameras: int) -> set[int]:
+    """The seeds a rerun skips: those with a result, except an episode whose worker died
+    (the machine's fault, not the episode's: a rerun runs it again, and its new line
+    replaces the old one)."""
+    return {r["seed"] for r in results if isinstance(r.get("seed"), int) and _same_episode(r, r["seed"], cameras)
+            and r.get("failure") != "worker died"}
 
 
 def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, rrd: str | None = None,
-                 config: Path | None = None, worker: Callable[[EpisodeJob], dict] = _worker,
+                 config: Any = None, worker: Callable[[EpisodeJob], dict] = _worker,
                  backend: str = "process", address: str | None = None, randomize: Any = None,
-                 progress_stream: TextIO | None = None) -> list[dict]:
+                 progress_stream: TextIO | None = None, label: str = "") -> list[dict]:
     """Run the episodes not yet in ``out/results.jsonl``; returns all results for these seeds.
+
     rrd: "all" writes OUT/episode-NNNN.rrd for every episode, "failures" keeps only those of
     episodes that did not grasp, None none. backend: "process" (a pool of ``jobs`` local
-    processes) or "ray" (Ray tasks: a local Ray of ``jobs`` CPUs started in-process, bound
-    to 127.0.0.1, or the cluster at ``address`` HOST:PORT); the same seeds give the same
-    results on both."""
+    processes) or "ray" (Ray tasks: a local Ray of ``jobs`` CPUs started in-process and
+    bound to 127.0.0.1, or the running cluster at ``address`` HOST:PORT). Each result is
+    appended to results.jsonl as its episode ends, whatever the backend; the same seeds give
+    the same results on every backend. randomize: a :class:`~tapecell.sim.randomize.Randomize`
+    (None: the cell file's ``[randomize]`` table). config: a cell file's path or None."""
     if rrd not in (None,) + RRD_MODES:
         raise TapecellError(f"--rrd must be one of {', '.join(RRD_MODES)}, got {rrd!r}")
     if jobs < 1:
@@ -231,34 +364,18 @@ def run_episodes(seeds: Iterable[int], cameras: int, out: Path, jobs: int = 1, r
     results_path = out / RESULTS
     seeds = list(seeds)
     _end_torn_line(results_path)
-    done = {(r["seed"], r.get("cameras")): r for r in load_results(results_path)}
-    todo = [s for s in seeds if (s, cameras) not in done]
+    done = done_seeds(load_results(results_path), cameras)
+    todo = [s for s in seeds if s not in done]
+    stream = progress_stream or sys.stderr
     if len(todo) < len(seeds):
         print(f"{len(seeds) - len(todo)} of {len(seeds)} episodes already in {results_path}; "
-              f"running {len(todo)}", file=sys.stderr)
+              f"running {len(todo)}", file=stream)
     job_list = [EpisodeJob(s, cameras, out / f"episode-{s:04d}.rrd" if rrd else None, config, rrd == "failures",
                            randomize) for s in todo]
-    progress = Progress(len(job_list), progress_stream or sys.stderr)
-    new = []
-    if backend == "ray":
-        from .ray_backend import run_on_ray
-        for doc in run_on_ray(job_list, jobs, address, worker):
-            append_result(results_path, doc)
-            new.append(doc)
-            progress.update(doc)
-    elif jobs == 1 or len(job_list) <= 1:
-        for job in job_list:
-            doc = worker(job)
-            append_result(results_path, doc)
-            new.append(doc)
-            progress.update(doc)
-    else:
-        # spawn: each worker builds its own MuJoCo renderer (EGL contexts do not survive fork)
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(jobs, maxtasksperchild=50) as pool:
-            for doc in pool.imap_unordered(worker, job_list):
-                append_result(results_path, doc)
-                new.append(doc)
-                progress.update(doc)
-    by_seed = {(r["seed"], r.get("cameras")): r for r in load_results(results_path)}
-    return [by_seed[(s, cameras)] for s in seeds if (s, cameras) in by_seed]
+    progress = Progress(len(job_list), stream, label)
+    for _, doc in run_jobs(job_list, jobs, backend, address, worker):
+        append_result(results_path, doc)
+        progress.update(doc)
+    by_seed = {r["seed"]: r for r in load_results(results_path)
+               if isinstance(r.get("seed"), int) and _same_episode(r, r["seed"], cameras)}
+    return [by_seed[s] for s in seeds if s in by_seed]

@@ -83,6 +83,14 @@ class Randomize:
             out[name] = _check(name, parse_value(name, text, source), source)
         return Randomize(out)
 
+    def with_settings(self, settings: Mapping[str, Any], source: str = "--param") -> "Randomize":
+        """A copy with ``settings`` (name -> a number, a (lo, hi) range or choices) checked
+        and applied."""
+        out = dict(self.settings)
+        for name, value in settings.items():
+            out[name] = _check(name, value, source)
+        return Randomize(out)
+
     def draw(self, seed: int) -> dict[str, Any]:
         """The values of episode ``seed`` (in a fixed order, from its own random stream)."""
         rng = np.random.default_rng([int(seed), SEED_SALT])
