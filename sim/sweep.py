@@ -175,7 +175,8 @@ def run_sweep(params: list[Param], n: int, seed: int, out: Path, jobs: int = 1, 
         print(f"{total - len(jobs_list)} of {total} episodes already in {out / CELLS}; running {len(jobs_list)}",
               file=stream)
     # Interleave the cells (seed-major), so a partial run covers every cell alike.
-    jobs_list.sort(key=lambda j: (j.seed, cells.index(cell_of[id(j)])))
+    order = {id(c): i for i, c in enumerate(cells)}
+    jobs_list.sort(key=lambda j: (j.seed, order[id(cell_of[id(j)])]))
     progress = Progress(len(jobs_list), stream, "sweep")
     t0 = time.perf_counter()
     for job, doc in run_jobs(jobs_list, jobs, backend, address, worker):
