@@ -1,4 +1,4 @@
-"""Rerun recordings of the cell: cameras, masks, fits, the arm, plans, grasps, calibration.
+"""Rerun recordings of the cell: cameras, masks, fits, verdicts, the arm, plans, grasps.
 
 Every function takes the :class:`rerun.RecordingStream` to log to; nothing here touches
 rerun's global recording. One entity tree (paths relative to the recording root):
@@ -9,8 +9,7 @@ rerun's global recording. One entity tree (paths relative to the recording root)
     world/cameras/<cam>/image/mask      SegmentationImage, observed silhouette (class 1)
     world/cameras/<cam>/image/model     SegmentationImage, model silhouette (class 2)
     world/cameras/<cam>/image/ignore    SegmentationImage, pixels that do not count (class 3)
-    world/cameras/<cam>/image/cross     Points2D, calibration target detections
-    world/cameras/<cam>/image/cross_reprojected   Points2D, the same points reprojected
+    world/cameras/<cam>/image/model_outline   LineStrips2D, the model silhouette's outline
     world/tape/fit                      LineStrips3D centre line at each optimiser iteration
     world/tape/estimate                 LineStrips3D centre line of the fit
     world/tape/estimate/nodes           Points3D P_C[0..n]
@@ -19,6 +18,8 @@ rerun's global recording. One entity tree (paths relative to the recording root)
     world/tape/tip                      Arrows3D tip frame (trunk, left, normal) of the fit
     world/tape/truth                    LineStrips3D true centre line
     world/tape/truth/tip                Arrows3D true tip frame
+    world/tape/alternatives/<k>         LineStrips3D, faint: the hypotheses the verdict weighed
+    world/scene                         Boxes3D, the scene's boxes (part, table)
     world/arm/flange                    Transform3D world_from_flange + TransformAxes3D
     world/arm/links                     LineStrips3D through link origins
     world/arm/links/origins             Points3D link origins
@@ -26,10 +27,10 @@ rerun's global recording. One entity tree (paths relative to the recording root)
     world/plan/waypoints                Points3D, labelled by waypoint name
     world/plan/path                     LineStrips3D through the waypoints in order
     world/plan/axes                     Arrows3D waypoint frames
-    calibration/poses                   Points3D target points of one robot pose
-    calibration/rms_px/<cam>            Scalars reprojection RMS [px]
     estimator/cost                      Scalars per optimiser iteration
     estimator/view_cost/<cam>           Scalars final cost of each view
+    estimator/verdict                   TextLog: verdict, reason, costs, alternatives
+    estimator/tip_error_mm              Scalars, against truth (simulator)
     arm/joints                          Scalars, one series per joint [rad]
     gripper/opening                     Scalars opening [m]
     gripper/events                      TextLog of gripper actions
@@ -40,9 +41,8 @@ Fits of several captures in one file (``tapecell estimate A B --rrd F``) are roo
 ``<capture name>/`` (the ``prefix`` argument of the fit loggers), and the blueprint gets a
 tab per capture.
 
-Timelines: ``iteration`` (sequence) for the estimator's cost, ``calib_pose`` (sequence)
-for calibration poses; both are cleared again after use so they do not stamp unrelated
-entities. ``sim_time`` (duration, s) is set by the arm and gripper loggers and stays set,
+Timelines: ``iteration`` (sequence) for the estimator's cost, cleared again after use so
+it does not stamp unrelated entities. ``sim_time`` (duration, s) is set by the arm and gripper loggers and stays set,
 so what is logged next (views, estimates) lands at the current cell time.
 
 Pixels: OpenCV puts the centre of the top-left pixel at (0, 0), rerun at (0.5, 0.5); the
@@ -527,47 +527,6 @@ def log_result(stream: rr.RecordingStream, result: Any) -> None:
             parts.append(f"{key}={value}")
     level = "WARN" if fields.get("success") is False else "INFO"
     stream.log("grasp/result", rr.TextLog(" ".join(parts), level=level))
-
-
-# ---------------------------------------------------------------------------- calibration
-
-
-def log_calibration_pose(stream: rr.RecordingStream, pose_index: int, points_world: np.ndarray,
-                         detections: Mapping[str, np.ndarray] | None = None,
-                         reprojections: Mapping[str, np.ndarray] | None = None) -> None:
-    """One calibration pose (``calib_pose`` timeline): target points in the world [m],
-    and per camera name the detected and reprojected pixels ((N, 2), OpenCV convention)."""
-    stream.set_time("calib_pose", sequence=int(pose_index))
-    stream.log("calibration/poses", rr.Points3D(np.asarray(points_world, float).reshape(-1, 3),
-                                                radii=0.001, colors=[[230, 0, 200]]))
-    for name, uv in (detections or {}).items():
-        stream.log(f"{_image_path(name)}/cross", rr.Points2D(_rerun_pixels(uv), radii=1.5,
-                                                             colors=[[255, 0, 0]]))
-    for name, uv in (reprojections or {}).items():
-        stream.log(f"{_image_path(name)}/cross_reprojected",
-                   rr.Points2D(_rerun_pixels(uv), radii=1.0, colors=[[0, 255, 0]]))
-    stream.disable_timeline("calib_pose")
-
-
-def log_calibration_result(stream: rr.RecordingStream, cameras: Iterable[Camera],
-                           per_pose_rms_px: Mapping[str, Sequence[float]] | None = None) -> None:
-    """Calibrated cameras (frusta via :func:`log_cameras`) and their residuals [px].
-
-    per_pose_rms_px: per camera name, the RMS residual of each pose (``calib_pose`` timeline).
-    """
-    cameras = list(cameras)
-    log_cameras(stream, cameras)
-    for cam in cameras:
-        if cam.rms_px is not None:
-            stream.log(f"calibration/rms_px/{cam.name}", rr.Scalars([float(cam.rms_px)]))
-    for name, values in (per_pose_rms_px or {}).items():
-        values = np.asarray(values, float).reshape(-1)
-        stream.send_columns(f"calibration/pose_rms_px/{name}",
-                            indexes=[rr.TimeColumn("calib_pose", sequence=np.arange(values.size))],
-                            columns=rr.Scalars.columns(scalars=values))
-
-
-# ---------------------------------------------------------------------------- reading back
 
 
 def read_recording(path: str | os.PathLike) -> dict[str, list[dict[str, Any]]]:

@@ -85,22 +85,15 @@ def _write_everything(path, scene):
     rec.log_gripper(stream, 1.0, 0.085, "open")
     rec.log_gripper(stream, 1.5, 0.002, "close")
     rec.log_result(stream, {"success": False, "tip_error_mm": 1.25, "reason": "slipped"})
-
-    target = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0]])
-    rec.log_calibration_pose(stream, 0, target, {"cam0": cams[0].project(target)},
-                             {"cam0": cams[0].project(target) + 0.1})
-    calibrated = [Camera(c.name, c.width, c.height, c.K, c.dist, c.R, c.t, rms_px=0.2 + i)
-                  for i, c in enumerate(cams)]
-    rec.log_calibration_result(stream, calibrated, {"cam0": [0.3, 0.25], "cam1": [0.4, 0.35]})
     rec.close_recording(stream)
-    return waypoints, target
+    return waypoints
 
 
 @pytest.fixture(scope="module")
 def recorded(scene, tmp_path_factory):
     path = tmp_path_factory.mktemp("rrd") / "episode.rrd"
-    waypoints, target = _write_everything(path, scene)
-    return dict(path=path, data=rec.read_recording(path), waypoints=waypoints, target=target)
+    waypoints = _write_everything(path, scene)
+    return dict(path=path, data=rec.read_recording(path), waypoints=waypoints)
 
 
 def _only(data, entity):
@@ -120,8 +113,7 @@ def test_every_entity_is_recorded(recorded):
         "world/cameras/cam0", "world/cameras/cam1", "world/cameras/cam0/image",
         "world/cameras/cam0/image/rgb", "world/cameras/cam0/image/mask",
         "world/cameras/cam0/image/model", "world/cameras/cam0/image/ignore",
-        "world/cameras/cam1/image/model", "world/cameras/cam0/image/cross",
-        "world/cameras/cam0/image/cross_reprojected",
+        "world/cameras/cam1/image/model",
         "world/tape/estimate", "world/tape/estimate/nodes", "world/tape/estimate/plates",
         "world/tape/estimate/outline", "world/tape/tip", "world/tape/truth",
         "world/tape/truth/tip", "estimator/cost", "estimator/view_cost/cam0",
@@ -129,8 +121,7 @@ def test_every_entity_is_recorded(recorded):
         "world/arm/flange", "world/arm/links", "world/arm/links/origins", "world/arm/links/axes",
         "arm/joints", "world/plan/waypoints", "world/plan/path", "world/plan/axes",
         "gripper/opening", "gripper/events", "grasp/result", "grasp/tip_error_mm",
-        "grasp/success", "calibration/poses", "calibration/rms_px/cam0",
-        "calibration/rms_px/cam1", "calibration/pose_rms_px/cam0",
+        "grasp/success",
     }
     missing = expected - set(recorded["data"])
     assert not missing
@@ -240,20 +231,6 @@ def test_plan_gripper_and_result(recorded):
     assert "reason=slipped" in result["TextLog:text"][0]
     assert _only(data, "grasp/tip_error_mm")["Scalars:scalars"] == pytest.approx([1.25])
     assert _only(data, "grasp/success")["Scalars:scalars"] == [0.0]
-
-
-def test_calibration(recorded, scene):
-    data, cam0 = recorded["data"], scene["cameras"][0]
-    cross = _only(data, "world/cameras/cam0/image/cross")
-    assert cross["calib_pose"] == 0
-    np.testing.assert_allclose(cross["Points2D:positions"], cam0.project(recorded["target"]) + 0.5,
-                               atol=1e-4)
-    np.testing.assert_allclose(_only(data, "calibration/poses")["Points3D:positions"],
-                               recorded["target"], atol=1e-6)
-    assert _only(data, "calibration/rms_px/cam1")["Scalars:scalars"] == pytest.approx([1.2])
-    per_pose = data["calibration/pose_rms_px/cam0"]
-    assert [r["calib_pose"] for r in per_pose] == [0, 1]
-    assert [r["Scalars:scalars"][0] for r in per_pose] == pytest.approx([0.3, 0.25])
 
 
 def _blueprint_origins(path) -> list[set[str]]:
