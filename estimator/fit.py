@@ -242,9 +242,9 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     verdict, reason, tip_views, alternatives, offsets = _judge(capture, evaluator, view_costs, shape, tip_position, tip_rotation,
                                                       min(plate_cost, combine(view_costs)), found)
     elapsed = time.perf_counter() - start
-    full = CostEvaluator([make_target(v) for v in capture.views], capture.scene)
     if method == "default":
         # The cost per iteration on the eq.-11 scale, for recordings and plots.
+        full = CostEvaluator([make_target(v) for v in capture.views], capture.scene)
         history = [full.cost(forward_kinematics(capture.tape, a).quads()) for a in trace]
         if callback is not None:
             for k, (a, c) in enumerate(zip(trace, history), 1):
@@ -252,16 +252,15 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     est = Estimate(shape.nodes, angles, tip_position, tip_rotation, combine(view_costs),
                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
                    trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)
-    folded = float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
-    if method == "default" and not thorough and verdict is Verdict.OK and folded:
-        # A fold: the same fit's more thorough look, whose alternatives are weighed afresh.
+    # A second, more thorough look (a larger global search on the widest grid, always)
+    # before answering, for an unsure estimate and for an "ok" fold (its alternatives, the
+    # shapes folded the other way, are weighed afresh). For a fold its answer stands; for an
+    # unsure one when it is "ok" (judged afresh) or explains the views better. The time of
+    # both looks counts.
+    folded = verdict is Verdict.OK and float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
+    unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN)
+    if method == "default" and not thorough and (folded or unsure):
         second = estimate(capture, method, thorough=True, config=config)
-        return dataclasses.replace(second, time_s=est.time_s + second.time_s)
-    if method == "default" and not thorough and verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN):
-        # Unsure: a second, more thorough look (a larger global search on the widest grid,
-        # always) before answering. Its answer stands when it is "ok" (judged afresh) or
-        # explains the views better; the time of both counts.
-        second = estimate(capture, method, thorough=True, config=config)
-        chosen = second if second.actionable or second.cost < est.cost else est
+        chosen = second if folded or second.actionable or second.cost < est.cost else est
         return dataclasses.replace(chosen, time_s=est.time_s + second.time_s)
     return est

@@ -235,12 +235,9 @@ def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], point
     return hits[1] and (hits[0] or hits[2])
 
 
-def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.ndarray,
-                           tip_rotation: np.ndarray, width: float) -> bool:
-    """Would most points BEYOND_M past the tip edge (its middle and near its corners) be
-    seen by ``view``: in the image, not ignored, in front of every scene box?"""
-    across = np.outer([-0.4, 0.0, 0.4], width * tip_rotation[:, 1])
-    points = np.vstack([tip_position + d * tip_rotation[:, 0] + across for d in BEYOND_M])
+def _visible(view: View, points: np.ndarray, boxes: Sequence[Box]) -> np.ndarray:
+    """(k,) which of ``points`` (k, 3) ``view`` sees: in front of the camera and inside its
+    image, not on ignored pixels, in front of every scene box."""
     cam = view.camera
     uv = cam.project(points)
     ok = np.all(np.isfinite(uv), axis=1) & (cam.to_camera(points)[:, 2] > 0)
@@ -251,25 +248,21 @@ def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.nda
         ok[ok] &= ~view.ignore[v[ok], u[ok]]
     if boxes:
         ok &= ~hidden(cam.center, points, boxes)
-    return int(np.count_nonzero(ok)) > len(points) // 2
+    return ok
+
+
+def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.ndarray,
+                           tip_rotation: np.ndarray, width: float) -> bool:
+    """Would most points BEYOND_M past the tip edge (its middle and near its corners) be
+    seen by ``view`` (see :func:`_visible`)?"""
+    across = np.outer([-0.4, 0.0, 0.4], width * tip_rotation[:, 1])
+    points = np.vstack([tip_position + d * tip_rotation[:, 0] + across for d in BEYOND_M])
+    return int(np.count_nonzero(_visible(view, points, boxes))) > len(points) // 2
 
 
 def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]) -> list[bool]:
     """Per view: does it see at least TIP_SEEN_FRACTION of ``points`` (k, 3)?"""
-    out = []
-    for v in views:
-        cam = v.camera
-        uv = cam.project(points)
-        ok = np.all(np.isfinite(uv), axis=1) & (cam.to_camera(points)[:, 2] > 0)
-        u = np.where(ok, np.rint(uv[:, 0]), -1).astype(int)
-        w = np.where(ok, np.rint(uv[:, 1]), -1).astype(int)
-        ok &= (u >= 0) & (u < cam.width) & (w >= 0) & (w < cam.height)
-        if v.ignore is not None:
-            ok[ok] &= ~v.ignore[w[ok], u[ok]]
-        if boxes:
-            ok &= ~hidden(cam.center, points, boxes)
-        out.append(bool(ok.mean() >= TIP_SEEN_FRACTION))
-    return out
+    return [bool(_visible(v, points, boxes).mean() >= TIP_SEEN_FRACTION) for v in views]
 
 
 def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs: np.ndarray,

@@ -92,10 +92,14 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         apply_to_model(cell.model, drawn)
         sim_arm = SimArm(cell, tool="gripper")
         sim_arm.open_gripper()
-        capture = cell.capture(rgb=stream is not None)
-        if cfg.episode.cameras_file:
-            capture = with_cameras(capture, _resolve(cfg, cfg.episode.cameras_file))
-        capture = apply_to_capture(capture, drawn, seed)
+        def look() -> Capture:
+            """A capture as the estimator gets it: calibrated cameras, the drawn errors."""
+            capture = cell.capture(rgb=stream is not None)
+            if cfg.episode.cameras_file:
+                capture = with_cameras(capture, _resolve(cfg, cfg.episode.cameras_file))
+            return apply_to_capture(capture, drawn, seed)
+
+        capture = look()
         times["capture"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -110,10 +114,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             # The arm hides part of the tape: park it out of every view and look again.
             t1 = time.perf_counter()
             sim_arm.park()
-            capture = cell.capture(rgb=stream is not None)
-            if cfg.episode.cameras_file:
-                capture = with_cameras(capture, _resolve(cfg, cfg.episode.cameras_file))
-            capture = apply_to_capture(capture, drawn, seed)
+            capture = look()
             times["capture"] += time.perf_counter() - t1
             est = estimate(capture, callback=callback)
             times["estimate"] += est.time_s
