@@ -1,10 +1,12 @@
-"""Rerun recordings of the cell: cameras, masks, fits, verdicts, the arm, plans, grasps.
+"""Rerun recordings of the cell: files, and the loggers of cameras, masks, fits and plans.
 
 Every function takes the :class:`rerun.RecordingStream` to log to; nothing here touches
-rerun's global recording. One entity tree (paths relative to the recording root):
+rerun's global recording. The story of an episode or a run (capture, estimate, plan,
+motion, result on one ``step`` timeline, the arm and the tape as geometry) is told by
+``cell/story.py`` with these loggers. One entity tree (paths relative to the recording root):
 
     world/cameras/<cam>                 Transform3D world_from_camera (static)
-    world/cameras/<cam>/image           Pinhole K, resolution (static; RDF = OpenCV axes)
+    world/cameras/<cam>/image           Pinhole K, resolution, drawn as a frustum (static; RDF = OpenCV axes)
     world/cameras/<cam>/image/rgb       Image, the colour frame
     world/cameras/<cam>/image/mask      SegmentationImage, observed silhouette (class 1)
     world/cameras/<cam>/image/model     SegmentationImage, model silhouette (class 2)
@@ -20,30 +22,22 @@ rerun's global recording. One entity tree (paths relative to the recording root)
     world/tape/truth/tip                Arrows3D true tip frame
     world/tape/alternatives/<k>         LineStrips3D, faint: the hypotheses the verdict weighed
     world/scene                         Boxes3D, the scene's boxes (part, table)
-    world/arm/flange                    Transform3D world_from_flange + TransformAxes3D
-    world/arm/links                     LineStrips3D through link origins
-    world/arm/links/origins             Points3D link origins
-    world/arm/links/axes                Arrows3D link frames
     world/plan/waypoints                Points3D, labelled by waypoint name
     world/plan/path                     LineStrips3D through the waypoints in order
     world/plan/axes                     Arrows3D waypoint frames
     estimator/cost                      Scalars per optimiser iteration
-    estimator/view_cost/<cam>           Scalars final cost of each view
+    estimator/view_cost/<cam>           Scalars, each view's cost
     estimator/verdict                   TextLog: verdict, reason, costs, alternatives
     estimator/tip_error_mm              Scalars, against truth (simulator)
-    arm/joints                          Scalars, one series per joint [rad]
-    gripper/opening                     Scalars opening [m]
-    gripper/events                      TextLog of gripper actions
     grasp/result                        TextLog summary of a grasp
     grasp/<key>                         Scalars of each numeric result field
+    (cell/story.py adds story, world/bodies/..., world/arm/flange, world/plan/approach,
+    arm/joints, gripper/opening and probe/...)
 
 Fits of several captures in one file (``tapecell estimate A B --rrd F``) are rooted at
 ``<capture name>/`` (the ``prefix`` argument of the fit loggers), and the blueprint gets a
-tab per capture.
-
-Timelines: ``iteration`` (sequence) for the estimator's cost, cleared again after use so
-it does not stamp unrelated entities. ``sim_time`` (duration, s) is set by the arm and gripper loggers and stays set,
-so what is logged next (views, estimates) lands at the current cell time.
+tab per capture; their cost per iteration is on the ``iteration`` timeline
+(:func:`fit_logger`), cleared again after use so it does not stamp unrelated entities.
 
 Pixels: OpenCV puts the centre of the top-left pixel at (0, 0), rerun at (0.5, 0.5); the
 conversion happens once, here (``_rerun_K``, ``_rerun_pixels``). Pinhole holds no lens
@@ -249,17 +243,25 @@ def _class_image(mask: np.ndarray, class_id: int) -> np.ndarray:
 # ---------------------------------------------------------------------------- cameras
 
 
+FRUSTUM_DEPTH_M = 0.12
+"""How far the cameras' frusta reach into the 3-D view [m] (about a fifth of the way to the tape)."""
+
+
 def log_cameras(stream: rr.RecordingStream, cameras: Iterable[Camera],
-                prefix: str | None = None) -> None:
-    """Each camera's pose, intrinsics and overlay colours (static), and a layout showing them."""
+                prefix: str | None = None, blueprint: bool = True) -> None:
+    """Each camera's pose, intrinsics (drawn as a frustum) and overlay colours (static),
+    and, unless ``blueprint`` is False, a layout showing them."""
     cameras = list(cameras)
     for cam in cameras:
         stream.log(f"{_root(prefix)}world/cameras/{cam.name}",
                    rr.Transform3D(translation=cam.center, mat3x3=cam.R.T), static=True)
         stream.log(_image_path(cam.name, prefix),
                    rr.Pinhole(image_from_camera=_rerun_K(cam.K), resolution=[cam.width, cam.height],
-                              camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.05),
+                              camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=FRUSTUM_DEPTH_M,
+                              color=[255, 255, 255], line_width=0.002),
                    rr.AnnotationContext(_ANNOTATIONS), static=True)
+    if not blueprint:
+        return
     names = [c.name for c in cameras]
     if isinstance(stream, RecordingFile):
         stream.layout[prefix or ""] = names
@@ -283,25 +285,33 @@ def log_view(stream: rr.RecordingStream, camera: Camera, mask: np.ndarray,
     stream.log(f"{base}/mask", rr.SegmentationImage(_class_image(mask, CLASS_MASK),
                                                     opacity=0.6, draw_order=0.0))
     if model_mask is not None:
-        stream.log(f"{base}/model", rr.SegmentationImage(_class_image(model_mask, CLASS_MODEL),
-                                                         opacity=0.5, draw_order=1.0))
-        # The model's outline on top: a mismatch with the observed mask shows at a glance.
-        contours, _ = cv2.findContours(np.asarray(model_mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        strips = [_rerun_pixels(np.vstack([c.reshape(-1, 2), c.reshape(-1, 2)[:1]]).astype(float))
-                  for c in contours if len(c) > 1]
-        stream.log(f"{base}/model_outline", rr.LineStrips2D(strips, radii=1.0, colors=[[255, 220, 0]],
-                                                            draw_order=3.0))
+        log_model(stream, camera, model_mask, prefix)
     if ignore is not None:
         stream.log(f"{base}/ignore", rr.SegmentationImage(_class_image(ignore, CLASS_IGNORE),
                                                           opacity=0.4, draw_order=2.0))
 
 
-def model_silhouette(camera: Camera, spec: TapeSpec, angles: np.ndarray) -> np.ndarray:
-    """(H, W) bool silhouette of the plate model for (n, 3) ``angles`` [rad] seen by ``camera``.
+def log_model(stream: rr.RecordingStream, camera: Camera, model_mask: np.ndarray,
+              prefix: str | None = None) -> None:
+    """The model's silhouette in one camera's view, faint, with its outline on top: a
+    mismatch with the observed mask shows at a glance. model_mask: (H, W) bool."""
+    base = _image_path(camera.name, prefix)
+    stream.log(f"{base}/model", rr.SegmentationImage(_class_image(model_mask, CLASS_MODEL),
+                                                     opacity=0.35, draw_order=1.0))
+    contours, _ = cv2.findContours(np.asarray(model_mask, np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    strips = [_rerun_pixels(np.vstack([c.reshape(-1, 2), c.reshape(-1, 2)[:1]]).astype(float))
+              for c in contours if len(c) > 1]
+    stream.log(f"{base}/model_outline", rr.LineStrips2D(strips, radii=1.0, colors=[[0, 90, 255]],
+                                                        draw_order=3.0))
+
+
+def model_silhouette(camera: Camera, spec: TapeSpec, angles: np.ndarray, boxes: Sequence[Any] = ()) -> np.ndarray:
+    """(H, W) bool silhouette of the plate model for (n, 3) ``angles`` [rad] seen by ``camera``
+    (without what the scene's ``boxes`` hide from it).
 
     The estimator's own renderer, so the overlay shows exactly what its cost compares.
     """
-    return render_view(camera, forward_kinematics(spec, angles))
+    return render_view(camera, forward_kinematics(spec, angles), boxes)
 
 
 # ---------------------------------------------------------------------------- tape
@@ -378,25 +388,6 @@ def log_estimate(stream: rr.RecordingStream, estimate: Estimate, spec: TapeSpec,
                                                      level="INFO" if verdict == "ok" else "WARN"))
 
 
-def log_cost(stream: rr.RecordingStream, iteration: int, cost: float,
-             prefix: str | None = None) -> None:
-    """The estimator's cost at one optimiser iteration (on the ``iteration`` timeline)."""
-    stream.set_time("iteration", sequence=int(iteration))
-    stream.log(f"{_root(prefix)}estimator/cost", rr.Scalars([float(cost)]))
-    stream.disable_timeline("iteration")
-
-
-def log_cost_history(stream: rr.RecordingStream, history: Sequence[float],
-                     prefix: str | None = None) -> None:
-    """A whole cost history at once (iterations 0..len-1), as one column."""
-    values = np.asarray(history, float).reshape(-1)
-    if values.size == 0:
-        return
-    stream.send_columns(f"{_root(prefix)}estimator/cost",
-                        indexes=[rr.TimeColumn("iteration", sequence=np.arange(values.size))],
-                        columns=rr.Scalars.columns(scalars=values))
-
-
 def log_truth(stream: rr.RecordingStream, truth: Truth, prefix: str | None = None) -> None:
     """The true centre line and tip frame (simulated captures)."""
     root = _root(prefix)
@@ -440,45 +431,7 @@ def log_fit_result(stream: rr.RecordingStream, capture: Capture, estimate: Estim
         stream.log(f"{_root(prefix)}estimator/tip_error_mm", rr.Scalars([error_mm]))
 
 
-def log_fit(stream: rr.RecordingStream, capture: Capture, estimate: Estimate,
-            prefix: str | None = None) -> None:
-    """:func:`log_fit_result` plus the estimate's whole cost history, after the fact."""
-    log_fit_result(stream, capture, estimate, prefix)
-    log_cost_history(stream, estimate.history, prefix)
-
-
 # ---------------------------------------------------------------------------- arm, plan, grasp
-
-
-def set_sim_time(stream: rr.RecordingStream, t: float) -> None:
-    """Stamp what is logged next at cell time ``t`` [s]."""
-    stream.set_time("sim_time", duration=float(t))
-
-
-def log_arm_state(stream: rr.RecordingStream, t: float, flange_pose: np.ndarray,
-                  joints: Sequence[float], link_poses: Sequence[np.ndarray] | None = None) -> None:
-    """The arm at time ``t`` [s]: world_from_flange (4x4), joint angles [rad], link frames.
-
-    link_poses: world_from_link 4x4 poses, base first, drawn as a skeleton with axes.
-    """
-    set_sim_time(stream, t)
-    world_from_flange = np.asarray(flange_pose, float).reshape(4, 4)
-    stream.log("world/arm/flange",
-               rr.Transform3D(translation=world_from_flange[:3, 3],
-                              mat3x3=world_from_flange[:3, :3]),
-               rr.TransformAxes3D(0.05))
-    stream.log("arm/joints", rr.Scalars(np.asarray(joints, float).reshape(-1)))
-    if link_poses is not None and len(link_poses):
-        poses = np.asarray(link_poses, float).reshape(-1, 4, 4)
-        stream.log("world/arm/links", rr.LineStrips3D([poses[:, :3, 3]], radii=0.004,
-                                                      colors=[[160, 160, 170]]))
-        stream.log("world/arm/links/origins", rr.Points3D(poses[:, :3, 3], radii=0.006))
-        stream.log("world/arm/links/axes", _axes_arrows(poses[:, :3, 3], poses[:, :3, :3], 0.04))
-
-
-def log_joint_names(stream: rr.RecordingStream, names: Sequence[str]) -> None:
-    """Name the joint series of ``arm/joints`` (static)."""
-    stream.log("arm/joints", rr.SeriesLines(names=list(names)), static=True)
 
 
 def log_plan(stream: rr.RecordingStream, waypoints: Mapping[str, np.ndarray]) -> None:
@@ -492,15 +445,6 @@ def log_plan(stream: rr.RecordingStream, waypoints: Mapping[str, np.ndarray]) ->
                                                    colors=[[255, 120, 0]]))
     stream.log("world/plan/path", rr.LineStrips3D([origins], radii=0.0008, colors=[[255, 120, 0]]))
     stream.log("world/plan/axes", _axes_arrows(origins, poses[:, :3, :3], FRAME_AXIS_LENGTH_M))
-
-
-def log_gripper(stream: rr.RecordingStream, t: float, opening_m: float,
-                event: str | None = None) -> None:
-    """Gripper opening [m] at time ``t`` [s], and the action taken then, if any."""
-    set_sim_time(stream, t)
-    stream.log("gripper/opening", rr.Scalars([float(opening_m)]))
-    if event:
-        stream.log("gripper/events", rr.TextLog(event, level="INFO"))
 
 
 def _as_mapping(result: Any) -> Mapping[str, Any]:

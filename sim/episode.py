@@ -66,6 +66,9 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     from tapecell.cell.planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, plan_grasp
     from tapecell.cell.safety import SafetyLimits
 
+    from tapecell.cell.story import Story
+
+    from .look import MotionSampler
     from .randomize import Randomize, apply_to_capture, apply_to_config, apply_to_model
 
     cfg = config if isinstance(config, CellConfig) else load_cell_config(config)
@@ -80,35 +83,34 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
                            "tip_error_mm": None, "normal_error_deg": None}
     if drawn:
         doc["randomize"] = drawn
-    stream = cell = None
+    cell = None
     errored = False
-    if recording is not None:
-        from tapecell.cell import recording as rec
-        stream = rec.open_recording(recording, app_id="tapecell-episode",
-                                    camera_names=[p.name for p in cfg.camera_placements(cameras)])
+    # What each stage found, in order, for the recording (written at the end, if asked for).
+    story = Story([p.name for p in cfg.camera_placements(cameras)])
     try:
         t0 = time.perf_counter()
         cell = _cell_for(cfg, seed, cameras)
         apply_to_model(cell.model, drawn)
         sim_arm = SimArm(cell, tool="gripper")
         sim_arm.open_gripper()
+        motion = MotionSampler(cell, sim_arm, story.samples)
+        motion.start()
+        motion.take("the arm parked, the gripper open")
+
         def look() -> Capture:
             """A capture as the estimator gets it: calibrated cameras, the drawn errors."""
-            capture = cell.capture(rgb=stream is not None)
+            capture = cell.capture(rgb=recording is not None)
             if cfg.episode.cameras_file:
                 capture = with_cameras(capture, _resolve(cfg, cfg.episode.cameras_file))
-            return apply_to_capture(capture, drawn, seed)
+            capture = apply_to_capture(capture, drawn, seed)
+            story.add("capture", float(cell.data.time), capture)
+            return capture
 
         capture = look()
         times["capture"] = time.perf_counter() - t0
 
-        t0 = time.perf_counter()
-        if stream is not None:
-            # Everything on the timeline the viewer opens on (the images, masks, estimate
-            # and truth were on log_time only, invisible there).
-            rec.set_sim_time(stream, cell.data.time)
-        callback = rec.fit_logger(stream, capture) if stream is not None else None
-        est = estimate(capture, callback=callback)
+        est = estimate(capture)
+        story.add("estimate", float(cell.data.time), (capture, est))
         times["estimate"] = est.time_s
         if not est.actionable and any(v.ignore is not None and v.ignore.any() for v in capture.views):
             # The arm hides part of the tape: park it out of every view and look again.
@@ -116,7 +118,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             sim_arm.park()
             capture = look()
             times["capture"] += time.perf_counter() - t1
-            est = estimate(capture, callback=callback)
+            est = estimate(capture)
+            story.add("estimate", float(cell.data.time), (capture, est))
             times["estimate"] += est.time_s
             doc["recaptured"] = True
         if est.verdict is Verdict.HIDDEN or (est.verdict is Verdict.AMBIGUOUS and est.alternatives):
@@ -124,7 +127,10 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             # which the cell carries for this, touches each hypothesis' tip (and goes past
             # it); the one it confirms (and only one) is kept.
             t1 = time.perf_counter()
-            est, doc["probed"] = resolve_by_probing(cell, sim_arm, est, capture.tape.width)
+            probes: list[dict] = []
+            est, doc["probed"] = resolve_by_probing(cell, sim_arm, est, capture.tape.width, probes)
+            story.add("probes", float(cell.data.time), probes)
+            story.add("estimate", float(cell.data.time), (capture, est), "after probing")
             times["probe"] = time.perf_counter() - t1
         doc["verdict"] = est.verdict.value
         doc["tip_views"] = int(est.tip_views)
@@ -134,27 +140,24 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         doc["tip_error_mm"] = round(err.tip_m * 1e3, 3)
         doc["normal_error_deg"] = round(err.normal_deg, 3)
         doc["cost"] = round(float(est.cost), 5)
-        if stream is not None:
-            rec.log_fit_result(stream, capture, est)
-            rec.log_truth(stream, capture.truth)
 
         t0 = time.perf_counter()
         limits = SafetyLimits.from_config(cfg.limits)
+        q_start = sim_arm.joints()
         try:
             plan = plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),
                               GripperGeometry.from_config(cfg.tools.gripper), limits,
-                              q_start=sim_arm.joints(), tape_points=est.nodes)
+                              q_start=q_start, tape_points=est.nodes)
         except PlanRefused as e:
             times["plan"] = time.perf_counter() - t0
+            story.add("plan", float(cell.data.time), (None, q_start, e))
             doc.update(failure=e.reason, detail=e.detail)
             return doc
         times["plan"] = time.perf_counter() - t0
-        if stream is not None:
-            rec.set_sim_time(stream, cell.data.time)
-            rec.log_plan(stream, plan.tool_waypoints())
+        story.add("plan", float(cell.data.time), (plan, q_start, None))
 
         t0 = time.perf_counter()
-        outcome = _execute_and_check(cell, sim_arm, plan, limits, stream)
+        outcome = _execute_and_check(cell, sim_arm, plan, limits, motion)
         times["execute"] = time.perf_counter() - t0
         # "limits": the safety check refused the plan before the arm moved; anything else
         # after execution began acted on the tape.
@@ -168,19 +171,24 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             doc["detail"] = outcome.detail
         return doc
     except BaseException:
-        errored = True
-        if stream is not None:          # an error, not a failed grasp: no partial recording
-            rec.discard_recording(stream)
-            stream = None
+        errored = True   # an error, not a failed grasp: no recording
         raise
     finally:
-        if cell is not None and not _keep(cell, ok=not errored):
-            cell.close()  # free the renderers' GL contexts, also after a refusal or an error
         doc["time_s"] = {k: round(v, 4) for k, v in times.items()}
-        if stream is not None:
-            rec.log_result(stream, {k: v for k, v in doc.items() if not isinstance(v, dict)})
-            rec.close_recording(stream)
-            doc["recording"] = Path(recording).name
+        if cell is not None:
+            cell.step_hook = None
+            if recording is not None and not errored:
+                doc["recording"] = Path(recording).name
+                story.write(recording, "tapecell-episode", motion.look, doc, _result_line(doc))
+            if not _keep(cell, ok=not errored):
+                cell.close()  # free the renderers' GL contexts, also after a refusal or an error
+
+
+def _result_line(doc: dict[str, Any]) -> str:
+    why = ""
+    if doc.get("failure"):
+        why = f": {doc['failure']}" + (f" ({doc['detail']})" if doc.get("detail") else "")
+    return f"result: {doc.get('outcome')}{why}; tip error {doc.get('tip_error_mm')} mm"
 
 
 REUSE_CELL = True
@@ -236,13 +244,14 @@ PROBE_MARGIN_M = 0.0015
 """... and at least this much closer than any other hypothesis' touch [m]."""
 
 
-def resolve_by_probing(cell, sim_arm, est, width: float):
+def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None):
     """Probe the tips of an estimate that is not ok (ambiguous or hidden) and of its
     alternatives with the needle, and past each touched tip (tape there: not the end).
     Returns (the estimate to act on, with verdict "ok" when exactly one hypothesis was
     confirmed, else unchanged; per hypothesis the distance [mm] from the aimed point to
     the touched one, None where nothing was touched). The gripper is remounted and opened
-    afterwards."""
+    afterwards. ``probes``, when given, gets each probe (label, aimed point, touched point or
+    None, cell time) for the recording."""
     from tapecell.cell.probe import ProbeError, ProbeParams, approach_normal, tape_points
     from .arm import SimArmError
     from .prober import SimProber
@@ -260,12 +269,17 @@ def resolve_by_probing(cell, sim_arm, est, width: float):
         reach); None when nothing was touched."""
         first = approach_normal(target, R[:, 2], -np.asarray(target))
         for normal in (first, -first):
+            touched = None
             try:
-                d = float(np.linalg.norm(prober.probe(label, target, normal).position - target))
+                touched = prober.probe(label, target, normal).position
             except Exception as e:    # noqa: BLE001 - an unreachable side is simply not a touch
                 if not isinstance(e, (ProbeError, IKError, SimArmError)):
                     raise
+            if probes is not None:
+                probes.append({"label": label, "aimed": target, "touched": touched, "t": float(cell.data.time)})
+            if touched is None:
                 continue
+            d = float(np.linalg.norm(touched - target))
             if d < 0.8 * params.standoff:
                 return d
         return None
@@ -373,8 +387,9 @@ def _resolve(cfg, path: str) -> Path:
     return p
 
 
-def _execute_and_check(cell, sim_arm, plan, limits, stream) -> EpisodeOutcome:
-    """Run the plan on the simulated arm and judge the grasp from the physics."""
+def _execute_and_check(cell, sim_arm, plan, limits, motion) -> EpisodeOutcome:
+    """Run the plan on the simulated arm and judge the grasp from the physics (``motion``
+    samples each step's start)."""
     from tapecell.cell.planner import Speeds, execute_plan
     from tapecell.cell.arm import ArmError
     from tapecell.cell.safety import SafetyError
@@ -384,17 +399,12 @@ def _execute_and_check(cell, sim_arm, plan, limits, stream) -> EpisodeOutcome:
     state: dict[str, Any] = {}
 
     def on_step(step, arm) -> None:
-        if stream is not None:
-            from tapecell.cell import recording as rec
-            rec.log_arm_state(stream, cell.data.time, sim_arm.tcp_pose("flange"), sim_arm.joints())
-            rec.log_gripper(stream, cell.data.time, sim_arm.gripper_opening(), step.action)
+        motion.take(f"{step.action} {step.waypoint or ''}".rstrip() + " done")
         if step.action == "close_gripper":
             state["contacts_closed"] = cell.gripper_pad_contacts_with_tape()
             state["tip_before"] = cell.tape_tip_position()
             state["tcp_before"] = sim_arm.tcp_pose("gripper")[:3, 3].copy()
 
-    if stream is not None:
-        _record_motion(cell, sim_arm, stream)
     driver = SimArmAdapter(sim_arm)
     try:
         with driver:
@@ -424,30 +434,6 @@ def _execute_and_check(cell, sim_arm, plan, limits, stream) -> EpisodeOutcome:
         return out
     out.success = True
     return out
-
-
-ARM_LOG_PERIOD_S = 0.05
-"""Sim time between two logged arm states while the arm moves."""
-
-
-def _record_motion(cell, sim_arm, stream) -> None:
-    """Log the arm (flange, joints, DH link frames) every ``ARM_LOG_PERIOD_S`` of sim time
-    while it moves, through the cell's step hook."""
-    from tapecell.cell.kinematics import dh_frames
-
-    from tapecell.cell import recording as rec
-
-    last = [-np.inf]
-
-    def log() -> None:
-        if cell.data.time - last[0] >= ARM_LOG_PERIOD_S:
-            last[0] = cell.data.time
-            q = sim_arm.joints()
-            frames = dh_frames(q)
-            rec.log_arm_state(stream, cell.data.time, frames[-1], q, link_poses=list(frames))
-            rec.log_gripper(stream, cell.data.time, sim_arm.gripper_opening())
-
-    cell.step_hook = log
 
 
 def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: Any,

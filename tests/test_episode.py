@@ -38,7 +38,18 @@ def test_one_episode_grasps_the_tape_and_records_every_step(tmp_path, capsys):
     labels = [r for r in rows["world/plan/waypoints"] if "Points3D:labels" in r][-1]["Points3D:labels"]
     assert "grasp" in labels
     assert len(rows["world/arm/flange"]) >= 20  # the arm over time, not only per plan step
-    assert "world/arm/links" in rows
+    # The arm, the mounted gripper and the true tape as the MuJoCo model's geometry, moving.
+    for body in ("arm/upper_arm_link", "tools/gripper_finger_left", "tape/tape_29"):
+        assert len(rows[f"world/bodies/{body}"]) >= 20, body
+    assert "Capsules3D:radii" in rows["world/bodies/arm/upper_arm_link/capsule"][0]
+    # One story, in order: capture, the fit's iterations, the verdict, the plan, the moves, the result.
+    story = [r["TextLog:text"][0] for r in rows["story"]]
+    first = {key: next(i for i, t in enumerate(story) if t.startswith(key))
+             for key in ("capture", "estimate: iteration 1", "estimate: verdict ok", "plan:", "move_joints pregrasp",
+                         "close_gripper", "result: grasped")}
+    assert list(first.values()) == sorted(first.values()), first
+    steps = [r["step"] for r in rows["story"]]
+    assert all(a < b for a, b in zip(steps, steps[1:]))
 
 
 def test_estimate_that_is_not_ok_is_refused_untouched(monkeypatch, capsys):

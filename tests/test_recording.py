@@ -7,9 +7,11 @@ import subprocess
 import cv2
 import numpy as np
 import pytest
+import rerun as rr
 from rerun.chunk import RrdReader
 
 from tapecell.cell import recording as rec
+from tapecell.cell.story import BodyLook, BodySample, Shape, Story
 from tapecell.estimator.capture import Capture, Truth, View
 from tapecell.estimator.errors import TapecellError
 from tapecell.estimator.geometry import Camera, look_at, rot_x, rot_z
@@ -40,8 +42,9 @@ def scene():
     truth = Truth(np.concatenate([[0.0], np.cumsum(spec.segment_lengths)]), true_shape.nodes,
                   true_shape.frames[-1])
     history = [0.9, 0.5, 0.31, 0.2, 0.12]
+    trace = tuple(fit_angles * (k + 1) / 5 for k in range(5))
     estimate = Estimate(fit_shape.nodes, fit_angles, fit_shape.nodes[-1], fit_shape.frames[-1],
-                        cost=0.12, view_costs=np.array([0.1, 0.14]), time_s=0.01, history=history)
+                        cost=0.12, view_costs=np.array([0.1, 0.14]), time_s=0.01, history=history, trace=trace)
     views = []
     for cam in cameras:
         mask = rec.model_silhouette(cam, spec, true_angles)
@@ -54,38 +57,57 @@ def scene():
                 true_angles=true_angles, fit_angles=fit_angles)
 
 
-def _write_everything(path, scene):
-    cams = scene["cameras"]
-    stream = rec.open_recording(path, camera_names=[c.name for c in cams])
-    rec.log_cameras(stream, cams)
-    for view in scene["capture"].views:
-        model = rec.model_silhouette(view.camera, scene["spec"], scene["fit_angles"])
-        rec.log_view(stream, view.camera, view.mask, image=view.image, model_mask=model,
-                     ignore=view.ignore)
-    for i, cost in enumerate(scene["estimate"].history):
-        rec.log_cost(stream, i, cost)
-    rec.log_estimate(stream, scene["estimate"], scene["spec"], [c.name for c in cams])
-    rec.log_truth(stream, scene["truth"])
+def _plan(waypoints):
+    """A grasp plan as the recorder reads it (names, steps, the first waypoint's joints)."""
+    from types import SimpleNamespace
 
-    rec.log_joint_names(stream, [f"q{i}" for i in range(6)])
-    links = [np.eye(4) for _ in range(3)]
-    for k, z in enumerate((0.0, 0.1, 0.2)):
-        links[k][:3, 3] = [0.0, 0.0, z]
-    for step in range(3):
-        flange = np.eye(4)
-        flange[:3, 3] = [0.3, 0.1 * step, 0.4]
-        rec.log_arm_state(stream, 0.5 * step, flange, np.arange(6) * 0.1 + step, links)
+    from tapecell.cell.kinematics import fk
+    from tapecell.cell.poses import matrix_to_pose6
+
+    q_pre = np.array([-1.5, -1.9, 2.2, -1.9, -1.6, 0.0])
+    flange = fk(q_pre)
+    pre = SimpleNamespace(name="pregrasp", world_from_tcp=flange, flange_pose=matrix_to_pose6(flange), q=q_pre)
+    return SimpleNamespace(steps=[SimpleNamespace(action="move_linear", waypoint=n) for n in waypoints],
+                           approach_tilt_rad=0.0, flipped=False, waypoints=[pre],
+                           tool_waypoints=lambda: waypoints)
+
+
+def _look():
+    """Two bodies: a box "arm/link" and a capsule "tools/needle" hidden in the last sample."""
+    T = np.eye(4)
+    T[:3, 3] = [0.0, 0.0, 0.05]
+    return BodyLook(("arm/link", "tools/needle"),
+                    (Shape(0, "box", (0.01, 0.02, 0.03), T, (200, 200, 200, 255)),
+                     Shape(1, "capsule", (0.004, 0.02), np.eye(4), (90, 90, 90, 255))))
+
+
+def _samples():
+    out = []
+    for k in range(3):
+        poses = np.stack([np.eye(4), np.eye(4)])
+        poses[:, :3, 3] = [0.3, 0.1 * k, 0.4]
+        out.append(BodySample(0.5 * k, poses, np.arange(6) * 0.1 + k, 0.085 - 0.04 * k,
+                              frozenset({"tools/needle"}) if k == 2 else frozenset(),
+                              "close_gripper done" if k == 1 else None))
+    return out
+
+
+def _write_everything(path, scene):
+    """A whole story: capture, estimate (with an optimiser trace), plan, three motion
+    samples, a failed result."""
     waypoints = {}
     for k, name in enumerate(("approach", "pregrasp", "grasp", "lift")):
         pose = np.eye(4)
         pose[:3, :3] = rot_x(np.pi)
         pose[:3, 3] = [0.05, 0.0, 0.1 - 0.02 * k]
         waypoints[name] = pose
-    rec.log_plan(stream, waypoints)
-    rec.log_gripper(stream, 1.0, 0.085, "open")
-    rec.log_gripper(stream, 1.5, 0.002, "close")
-    rec.log_result(stream, {"success": False, "tip_error_mm": 1.25, "reason": "slipped"})
-    rec.close_recording(stream)
+    story = Story(["cam0", "cam1"])
+    story.add("capture", 0.0, scene["capture"])
+    story.add("estimate", 0.0, (scene["capture"], scene["estimate"]))
+    story.add("plan", 0.0, (_plan(waypoints), np.zeros(6), None))
+    story.samples.extend(_samples())
+    story.write(path, "tapecell-test", _look(), {"success": False, "tip_error_mm": 1.25, "reason": "slipped"},
+                "result: failed: slipped")
     return waypoints
 
 
@@ -110,32 +132,59 @@ def test_file_is_complete_and_no_temporary_left(recorded):
 
 def test_every_entity_is_recorded(recorded):
     expected = {
-        "world/cameras/cam0", "world/cameras/cam1", "world/cameras/cam0/image",
+        "story", "world/cameras/cam0", "world/cameras/cam1", "world/cameras/cam0/image",
         "world/cameras/cam0/image/rgb", "world/cameras/cam0/image/mask",
-        "world/cameras/cam0/image/model", "world/cameras/cam0/image/ignore",
-        "world/cameras/cam1/image/model",
-        "world/tape/estimate", "world/tape/estimate/nodes", "world/tape/estimate/plates",
+        "world/cameras/cam0/image/model", "world/cameras/cam0/image/model_outline",
+        "world/cameras/cam0/image/ignore", "world/cameras/cam1/image/model",
+        "world/tape/fit", "world/tape/estimate", "world/tape/estimate/nodes", "world/tape/estimate/plates",
         "world/tape/estimate/outline", "world/tape/tip", "world/tape/truth",
         "world/tape/truth/tip", "estimator/cost", "estimator/view_cost/cam0",
-        "estimator/view_cost/cam1", "estimator/final_cost",
-        "world/arm/flange", "world/arm/links", "world/arm/links/origins", "world/arm/links/axes",
-        "arm/joints", "world/plan/waypoints", "world/plan/path", "world/plan/axes",
-        "gripper/opening", "gripper/events", "grasp/result", "grasp/tip_error_mm",
-        "grasp/success",
+        "estimator/view_cost/cam1", "estimator/final_cost", "estimator/verdict", "estimator/tip_error_mm",
+        "world/bodies/arm/link", "world/bodies/arm/link/box", "world/bodies/tools/needle/capsule",
+        "world/arm/flange", "arm/joints", "world/plan/waypoints", "world/plan/path", "world/plan/axes",
+        "world/plan/approach", "gripper/opening", "grasp/result", "grasp/tip_error_mm", "grasp/success",
     }
     missing = expected - set(recorded["data"])
     assert not missing
 
 
-def test_cost_series_on_iteration_timeline(recorded, scene):
-    rows = recorded["data"]["estimator/cost"]
-    assert [r["iteration"] for r in rows] == list(range(5))
-    assert [r["Scalars:scalars"][0] for r in rows] == pytest.approx(scene["estimate"].history)
-    # The iteration timeline is cleared after use: later entities are not stamped with it.
-    assert "iteration" not in _only(recorded["data"], "world/tape/estimate")
-    view_costs = [_only(recorded["data"], f"estimator/view_cost/{n}")["Scalars:scalars"][0]
-                  for n in ("cam0", "cam1")]
-    assert view_costs == pytest.approx([0.1, 0.14])
+def test_one_timeline_tells_the_story_in_order(recorded, scene):
+    """Every logged row that is not static is on the ``step`` timeline, and the story's
+    lines come in the order the stages ran, each on its own step (motion samples without
+    an event take steps of their own, with no line)."""
+    data = recorded["data"]
+    story = data["story"]
+    steps = [r["step"] for r in story]
+    assert steps[:8] == list(range(8)) and all(a < b for a, b in zip(steps, steps[1:]))
+    assert steps[-1] == 3 + len(scene["estimate"].trace) + 3   # capture, iterations, verdict, plan, 3 samples, result
+    texts = [r["TextLog:text"][0] for r in story]
+    n_iter = len(scene["estimate"].trace)
+    assert texts[0].startswith("capture: 2 cameras")
+    assert [t.split(",")[0] for t in texts[1:1 + n_iter]] == [f"estimate: iteration {k}" for k in range(1, n_iter + 1)]
+    assert texts[1 + n_iter].startswith("estimate: verdict ok")
+    assert texts[2 + n_iter].startswith("plan: 4 steps")
+    assert texts[-2] == "close_gripper done" and texts[-1] == "result: failed: slipped"
+    for entity, rows in data.items():
+        for r in rows:
+            stamped = {k for k in r if k in ("step", "sim_time", "iteration")}
+            assert not stamped or "step" in stamped, entity
+
+
+def test_cost_per_iteration_and_view(recorded, scene):
+    """One cost per optimiser iteration, overall and per view, on the iterations' steps:
+    the eq.-7 costs of each traced chain, as the estimator computes them."""
+    from tapecell.estimator.silhouette import CostEvaluator, make_target
+
+    data, est, capture = recorded["data"], scene["estimate"], scene["capture"]
+    evaluator = CostEvaluator([make_target(v) for v in capture.views], capture.scene)
+    expected = np.array([evaluator.view_costs(forward_kinematics(capture.tape, a).quads()) for a in est.trace])
+    rows = data["estimator/cost"]
+    assert [r["step"] for r in rows] == list(range(1, len(est.trace) + 1))
+    assert [r["Scalars:scalars"][0] for r in rows] == pytest.approx(np.sqrt((expected ** 2).sum(axis=1)))
+    for k, name in enumerate(("cam0", "cam1")):
+        costs = [r["Scalars:scalars"][0] for r in data[f"estimator/view_cost/{name}"] if "step" in r]
+        assert costs[:len(est.trace)] == pytest.approx(expected[:, k])
+    assert costs[-1] == pytest.approx(0.14)    # the final view cost, after the iterations
 
 
 def test_tape_geometry_matches(recorded, scene):
@@ -200,18 +249,24 @@ def test_images_read_back_pixel_exact(recorded, scene):
         np.testing.assert_array_equal(rgb, view.image)
 
 
-def test_arm_over_time(recorded):
+def test_bodies_move_as_sampled(recorded):
+    """Each body's world pose per motion sample (step and sim_time); a body hidden in a
+    sample (a tool not mounted) is scaled to nothing; its shapes are logged once."""
     data = recorded["data"]
-    flange = data["world/arm/flange"]
-    assert [r["sim_time"] for r in flange] == [0, 500_000_000, 1_000_000_000]
-    assert [r["Transform3D:translation"][0][1] for r in flange] == pytest.approx([0.0, 0.1, 0.2])
+    link = data["world/bodies/arm/link"]
+    assert [r["sim_time"] for r in link] == [0, 500_000_000, 1_000_000_000]
+    steps = [r["step"] for r in link]
+    assert steps == sorted(steps) and len(set(steps)) == 3
+    assert [r["Transform3D:translation"][0][1] for r in link] == pytest.approx([0.0, 0.1, 0.2])
+    assert [r["Transform3D:scale"][0] for r in data["world/bodies/tools/needle"]] == [[1, 1, 1], [1, 1, 1], [0, 0, 0]]
+    box = _only(data, "world/bodies/arm/link/box")
+    assert box["Boxes3D:half_sizes"] == [pytest.approx([0.01, 0.02, 0.03])]
+    assert box["Boxes3D:centers"] == [pytest.approx([0.0, 0.0, 0.05])]
+    capsule = _only(data, "world/bodies/tools/needle/capsule")   # from its centre back half its length
+    assert capsule["Capsules3D:lengths"] == pytest.approx([0.04])
+    assert capsule["Capsules3D:translations"] == [pytest.approx([0.0, 0.0, -0.02])]
     joints = data["arm/joints"]
-    temporal = [r for r in joints if "sim_time" in r]
-    assert temporal[-1]["Scalars:scalars"] == pytest.approx(np.arange(6) * 0.1 + 2)
-    names = [r for r in joints if "SeriesLines:names" in r]
-    assert names[0]["SeriesLines:names"] == [f"q{i}" for i in range(6)]
-    links = data["world/arm/links/origins"][-1]["Points3D:positions"]
-    assert np.array(links)[:, 2] == pytest.approx([0.0, 0.1, 0.2])
+    assert joints[-1]["Scalars:scalars"] == pytest.approx(np.arange(6) * 0.1 + 2)
 
 
 def test_plan_gripper_and_result(recorded):
@@ -222,10 +277,11 @@ def test_plan_gripper_and_result(recorded):
     np.testing.assert_allclose(wp["Points3D:positions"], positions, atol=1e-6)
     np.testing.assert_allclose(_only(data, "world/plan/path")["LineStrips3D:strips"][0], positions,
                                atol=1e-6)
+    approach = np.array(_only(data, "world/plan/approach")["LineStrips3D:strips"][0])
+    from tapecell.cell.kinematics import fk
+    np.testing.assert_allclose(approach[0], fk(np.zeros(6))[:3, 3], atol=1e-6)    # from q_start
     opening = data["gripper/opening"]
-    assert [r["Scalars:scalars"][0] for r in opening] == pytest.approx([0.085, 0.002])
-    assert [r["sim_time"] for r in opening] == [1_000_000_000, 1_500_000_000]
-    assert [r["TextLog:text"][0] for r in data["gripper/events"]] == ["open", "close"]
+    assert [r["Scalars:scalars"][0] for r in opening] == pytest.approx([0.085, 0.045, 0.005])
     result = _only(data, "grasp/result")
     assert result["TextLog:level"] == ["WARN"]
     assert "reason=slipped" in result["TextLog:text"][0]
@@ -248,9 +304,9 @@ def _blueprint_origins(path) -> list[set[str]]:
     return out
 
 
-def test_default_blueprint_shows_world_cameras_and_cost(recorded):
-    assert any({"world", "world/cameras/cam0/image", "world/cameras/cam1/image", "estimator"}
-               <= origins for origins in _blueprint_origins(recorded["path"]))
+def test_default_blueprint_shows_world_cameras_plots_and_story(recorded):
+    assert any({"world", "world/cameras/cam0/image", "world/cameras/cam1/image", "estimator", "arm", "/"}
+               <= origins | {"/"} for origins in _blueprint_origins(recorded["path"]))
 
 
 def test_model_silhouette_covers_the_projected_plates(scene):
@@ -273,20 +329,6 @@ def test_model_silhouette_covers_the_projected_plates(scene):
     ys, xs = np.nonzero(sil)
     assert grown[ys * 8 + 4, xs * 8 + 4].all()
     assert sil.sum() > 50
-
-
-def test_log_fit_logs_a_whole_capture(scene, tmp_path):
-    path = tmp_path / "fit.rrd"
-    with rec.recording(path) as stream:
-        rec.log_fit(stream, scene["capture"], scene["estimate"])
-    data = rec.read_recording(path)
-    for cam in ("cam0", "cam1"):
-        assert f"world/cameras/{cam}/image/model" in data
-        assert f"world/cameras/{cam}/image/rgb" in data
-    costs = data["estimator/cost"]
-    assert [r["iteration"] for r in costs] == list(range(5))
-    assert [r["Scalars:scalars"][0] for r in costs] == pytest.approx(scene["estimate"].history)
-    assert "world/tape/truth" in data
 
 
 def test_fit_logger_and_prefixed_captures(scene, tmp_path):
@@ -326,7 +368,7 @@ def test_failed_block_leaves_no_file(scene, tmp_path):
 def test_file_appears_only_on_close(scene, tmp_path):
     path = tmp_path / "late.rrd"
     stream = rec.open_recording(path)
-    rec.log_cost(stream, 0, 1.0)
+    stream.log("estimator/cost", rr.Scalars([1.0]))
     stream.flush()
     assert not path.exists()
     rec.close_recording(stream)

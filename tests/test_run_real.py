@@ -46,7 +46,16 @@ def test_dry_run_plans_and_moves_nothing(real_like, no_robot, tmp_path, capsys):
     assert "nothing moved" in out
     assert (saved / "capture.json").exists() and (saved / "cam0_rgb.png").exists()
     assert main(["estimate", str(saved)]) == 0  # the saved capture replays
-    assert (tmp_path / "run.rrd").stat().st_size > 0
+    from tapecell.cell.recording import read_recording
+
+    rows = read_recording(tmp_path / "run.rrd")
+    story = [r["TextLog:text"][0] for r in rows["story"]]
+    assert story[0].startswith("capture: 2 cameras") and story[-1].startswith("planned; nothing moved")
+    assert any(t.startswith("estimate: verdict ok") for t in story) and any(t.startswith("plan:") for t in story)
+    # The arm (the UR5e's DH model as capsules, the gripper's boxes) shown where the plan grasps.
+    assert "Capsules3D:radii" in rows["world/bodies/arm/link2/capsule"][0]
+    assert len(rows["world/bodies/arm/link6/box"][0]["Boxes3D:half_sizes"]) == 3
+    assert "world/scene" in rows          # the part and the table, which the estimate knew
 
 
 def test_execute_without_a_terminal_refuses_before_connecting(real_like, no_robot, monkeypatch, capsys):
@@ -187,7 +196,7 @@ def test_execute_refuses_when_the_kinematics_disagree(real_like, monkeypatch, ca
     assert robot.log[-3:] == [("control.disconnect",), ("receive.disconnect",), ("io.disconnect",)]
 
 
-def test_refused_verdict_moves_nothing(real_like, monkeypatch, no_robot, capsys):
+def test_refused_verdict_moves_nothing(real_like, monkeypatch, no_robot, capsys, tmp_path):
     """An estimate a robot must not act on ends with exit 1 before any plan or connection
     (the estimator's verdict is its own business: here it is forced to "ambiguous")."""
     import dataclasses
@@ -202,12 +211,20 @@ def test_refused_verdict_moves_nothing(real_like, monkeypatch, no_robot, capsys)
                                    verdict_reason="a distinct shape explains the views as well")
     monkeypatch.setattr(estimator, "estimate", ambiguous)
     images, cameras = real_like
+    rrd = tmp_path / "refused.rrd"
     code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
-                 "--execute", "--yes"])
+                 "--execute", "--yes", "--rrd", str(rrd)])
     out, err = capsys.readouterr()
     assert code == 1 and err.count("\n") == 1
     assert "verdict is ambiguous (a distinct shape explains the views as well): a robot must not act on it" in err
     assert "grasp plan" not in out
+    # The recording keeps what a reviewer needs: what was seen, what was believed, why it was refused.
+    from tapecell.cell.recording import read_recording
+
+    rows = read_recording(rrd)
+    story = [r["TextLog:text"][0] for r in rows["story"]]
+    assert story[-1].startswith("refused: the estimate's verdict is ambiguous")
+    assert rows["story"][-1]["TextLog:level"] == ["WARN"] and "plan:" not in " ".join(story)
 
 
 def test_real_cell_path_never_loads_the_simulator(real_like, tmp_path):

@@ -55,7 +55,7 @@ def grab_capture(cfg, cameras, images: Path | None, cameras_file: str = "cameras
     from tapecell.estimator.errors import CaptureError
     from tapecell.estimator.sanity import check_mask_coverage, check_view_geometry
     from tapecell.estimator.segment import segment_tape
-    from tapecell.cell.config import tape_spec
+    from tapecell.cell.config import scene_boxes, tape_spec
 
     from tapecell.cell.cameras_real import FolderCameras, VideoCameras
 
@@ -81,7 +81,8 @@ def grab_capture(cfg, cameras, images: Path | None, cameras_file: str = "cameras
         check_mask_coverage(mask, cam.name, f"the segmented image of camera {cam.name}")
         check_view_geometry(cam, tape, mask, cameras_file)
         views.append(View(cam, mask, None, img))
-    return Capture(tape, views)
+    # The part and the table hide the tape from some cameras: the estimator knows them.
+    return Capture(tape, views, scene=scene_boxes(cfg))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -89,9 +90,10 @@ def run(args: argparse.Namespace) -> int:
     from tapecell.estimator.capture import load_cameras, save_capture
     from tapecell.cell.config import load_cell_config
 
-    from tapecell.cell import recording as rec
-    from tapecell.cell.planner import GraspParams, GripperGeometry, Speeds, TipFrame, execute_plan, plan_grasp
+    from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, Speeds, TipFrame,
+                                       execute_plan, plan_grasp)
     from tapecell.cell.safety import SafetyLimits
+    from tapecell.cell.story import Story
 
     cfg = load_cell_config(args.config)
     cameras = load_cameras(args.cameras)
@@ -101,15 +103,20 @@ def run(args: argparse.Namespace) -> int:
     check_files([args.rrd], args.force)
     check_dir(args.save_capture, args.force)
     limits = SafetyLimits.from_config(cfg.limits)
-    stream = rec.open_recording(args.rrd, "tapecell-run", [c.name for c in cameras]) if args.rrd else None
+    gripper = GripperGeometry.from_config(cfg.tools.gripper)
+    # What each stage found, in order: the recording (--rrd) is written from it at the end,
+    # also when the run ends in a refusal or a robot error (then with that as its result).
+    story = Story([c.name for c in cameras])
+    result: dict = {"success": False, "outcome": "refused", "verdict": None, "failure": None}
     try:
         capture = grab_capture(cfg, cameras, args.images, str(args.cameras))
+        story.add("capture", None, capture)
         if args.save_capture is not None:
             save_capture(capture, args.save_capture, rgb=True, force=args.force)
             print(f"saved the capture to {args.save_capture}", file=sys.stderr)
-        est = estimate(capture, callback=rec.fit_logger(stream, capture) if stream else None)
-        if stream is not None:
-            rec.log_fit_result(stream, capture, est)
+        est = estimate(capture)
+        story.add("estimate", None, (capture, est))
+        result["verdict"] = est.verdict.value
         tip_mm = ", ".join(f"{v * 1e3:.1f}" for v in est.tip_position)
         print(f"estimate: tip [{tip_mm}] mm, cost {est.cost:.4f}, verdict {est.verdict.value}, "
               f"{est.time_s * 1e3:.1f} ms")
@@ -125,46 +132,64 @@ def run(args: argparse.Namespace) -> int:
                               q_start=q_start, tape_points=est.nodes, **kw)
 
         shown = make_plan(None)
+        story.add("plan", None, (shown, REFERENCE_JOINTS, None))
         print(shown.describe())
-        if stream is not None:
-            rec.log_plan(stream, shown.tool_waypoints())
         if not args.execute:
             print("nothing moved (add --execute to run the plan on the arm)")
-            _close(rec, stream)
-            stream = None
+            # The recording shows the arm where the plan would grasp, said to be only planned.
+            story.samples.append(_arm_sample(0.0, shown.waypoint("grasp").q,
+                                             "the planned grasp pose (dry run: the arm did not move)"))
+            result.update(outcome="planned", success=True)
+            _write(args.rrd, story, result, "planned; nothing moved (no --execute)", gripper)
             return 0
         speeds = Speeds()
         confirm_robot(cfg.robot.host, cfg.robot.port, [
             f"run the grasp plan above ({len(shown.steps)} steps: joint moves at {speeds.joint:g} rad/s, the "
             f"approach at {speeds.approach:g} m/s, the lift at {speeds.lift:g} m/s), after checking it again "
             "from the arm's actual joints in the controller's kinematics"], args.yes)
-        from tapecell.cell.poses import pose6_to_matrix
         from tapecell.cell.ur import URArm
 
         arm = URArm.from_config(cfg, cfg.tools.gripper.flange_from_tcp)
         with arm:
             plan = make_plan(arm.joints(), ik=arm.ik)     # the controller's kinematics, from where it is
             _check_same_plan(shown, plan)
+            t_start = time.perf_counter()
+            story.samples.append(_arm_sample(0.0, arm.joints(), "connected; the confirmed plan starts"))
 
             def on_step(step, a):
                 print(f"done: {step.action} {step.waypoint or ''}".rstrip())
-                if stream is not None:
-                    rec.log_arm_state(stream, time.perf_counter() - t_start, pose6_to_matrix(a.tcp_pose()), a.joints())
+                story.samples.append(_arm_sample(time.perf_counter() - t_start, a.joints(),
+                                                 f"{step.action} {step.waypoint or ''}".rstrip() + " done"))
 
-            t_start = time.perf_counter()
             execute_plan(plan, arm, limits, speeds, on_step=on_step)
         print("grasp executed")
-    except BaseException:
-        if stream is not None:
-            rec.discard_recording(stream)   # a run that ends in an error leaves no file behind
+        result.update(outcome="executed", success=True)
+        _write(args.rrd, story, result, "the grasp plan ran to its end (the real cell has no truth to check it)",
+               gripper)
+    except TapecellError as e:
+        # A refusal or a robot error is what a reviewer most needs to see: recorded with it.
+        if story.events:
+            result.update(failure=type(e).__name__, detail=str(e),
+                          outcome="refused" if not story.samples else "failed")
+            _write(args.rrd, story, result, f"{result['outcome']}: {e}", gripper)
         raise
-    _close(rec, stream)
     return 0
 
 
-def _close(rec, stream) -> None:
-    if stream is not None:
-        rec.close_recording(stream)
+def _arm_sample(t: float, q, event: str):
+    from tapecell.cell.story import BodySample, ur5e_poses
+
+    q = np.asarray(q, float)
+    return BodySample(float(t), ur5e_poses(q), q, None, frozenset(), event)
+
+
+def _write(path, story, result, text: str, gripper) -> None:
+    """The run's recording (``--rrd``), written atomically; nothing without --rrd."""
+    if path is None:
+        return
+    from tapecell.cell.story import ur5e_look
+
+    story.write(path, "tapecell-run", ur5e_look(gripper), result, text)
 
 
 def _check_same_plan(shown, plan) -> None:
