@@ -301,6 +301,7 @@ class Recorder:
 
     def motion(self, samples: Sequence[BodySample]) -> None:
         """The bodies, joints and gripper at each sample, one step each."""
+        samples = _moving(samples)
         if not samples:
             return
         names = self.look.names if self.look is not None else ()
@@ -377,6 +378,25 @@ def _quats_xyzw(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R).as_quat()
 
 
+MOTION_STEP_M = 0.002
+"""A motion sample is recorded when some body moved this far since the last recorded one
+(or it marks an event, or it is the last): pauses (settling, the gripper closing on its
+own) take no steps, and a long probing run stays a few MB."""
+
+
+def _moving(samples: Sequence[BodySample]) -> list[BodySample]:
+    kept: list[BodySample] = []
+    for i, s in enumerate(samples):
+        if kept and not s.event and i < len(samples) - 1 and s.hidden == kept[-1].hidden:
+            moved = np.max(np.linalg.norm(s.world_from_body[:, :3, 3] - kept[-1].world_from_body[:, :3, 3], axis=1),
+                           initial=0.0)
+            opening = (s.gripper_opening or 0.0) - (kept[-1].gripper_opening or 0.0)
+            if moved < MOTION_STEP_M and abs(opening) < MOTION_STEP_M:
+                continue
+        kept.append(s)
+    return kept
+
+
 # ------------------------------------------------------------------------ layout
 EYE_OFFSET_M = (0.50, 0.30, 0.30)
 """Where the 3-D view's eye starts, from the tape's base [m]: beyond the tape as seen from
@@ -390,7 +410,8 @@ def blueprint(camera_names: Sequence[str], look_target: Sequence[float] | None =
     end (following), so the whole story is shown."""
     cams = [rrb.Spatial2DView(origin=f"world/cameras/{n}/image", name=n) for n in camera_names]
     plots = rrb.Horizontal(
-        rrb.TimeSeriesView(origin="estimator", name="estimator cost (per view, overall)"),
+        rrb.TimeSeriesView(origin="estimator", name="estimator cost (per view, overall)",
+                           contents=["$origin/**", "- $origin/tip_error_mm"]),   # mm would squash the costs
         rrb.Tabs(rrb.TimeSeriesView(origin="arm", name="joints [rad]"),
                  rrb.TimeSeriesView(origin="gripper", name="gripper [m]"),
                  rrb.TimeSeriesView(origin="grasp", name="result")),
