@@ -195,7 +195,8 @@ TOOL_NAMES = ("plate", "needle", "gripper")
 @dataclass(frozen=True)
 class LimitsSection:
     """Safety limits for every commanded pose: TCP workspace box and keep-out box
-    around the part [m], speeds m/s and rad/s, accelerations m/s^2 and rad/s^2."""
+    around the part [m], speeds m/s and rad/s, accelerations m/s^2 and rad/s^2, and the
+    clearance [m] the tool and the wrist keep from the table and the part."""
     workspace_min: Vec3
     workspace_max: Vec3
     max_tcp_speed: float
@@ -204,6 +205,7 @@ class LimitsSection:
     keepout_min: Vec3
     keepout_max: Vec3
     max_joint_accel: float = 1.4
+    clearance: float = 0.005
 
 
 @dataclass(frozen=True)

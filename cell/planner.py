@@ -19,7 +19,8 @@ across the width), and the jaw may be turned half a turn about its own axis (the
 is symmetric); the least tilted feasible variant wins.
 
 Plan: open; joint move to ``pregrasp`` (``pregrasp_distance`` back along the approach, clear
-of the tape); linear ``approach`` to ``grasp`` (TCP ``inset`` in from the tip along the
+of the tape; through ``above``, 150 mm over it, when the direct joint move would sweep the
+wrist or the gripper into the table or the part); linear ``approach`` to ``grasp`` (TCP ``inset`` in from the tip along the
 trunk); close; lift by ``lift`` metres (TCP path length) in linear moves of at most 10 mm
 (``lift_1`` ... ``lift``). Two lift modes:
 
@@ -35,7 +36,8 @@ trunk); close; lift by ``lift`` metres (TCP path length) in linear moves of at m
 Refusals raise :class:`PlanRefused` with ``reason`` one of "estimate rejected" (fit cost
 above the threshold), "unreachable" (no inverse kinematics, or a straight segment crosses a
 singularity / changes configuration), "limits" (workspace box or speeds), "collision"
-(keep-out box around the part, or the open fingers through the tape).
+(keep-out box around the part, the gripper or the wrist closer than the clearance to the
+table or the part, or the open fingers through the tape).
 """
 from __future__ import annotations
 
@@ -50,8 +52,8 @@ from tapecell.estimator.geometry import is_rotation
 from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import ik_nearest
 from .poses import interpolate_pose6, invert, matrix_to_pose6, pose6_to_matrix
-from .safety import (KeepOutError, SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
-                     check_points_flange)
+from .safety import (KeepOutError, SafeArm, SafetyError, SafetyLimits, ToolShape, check_joint_move,
+                     check_linear_move, check_points_flange, check_wrist_clear)
 
 IK = Callable[[np.ndarray, np.ndarray], "np.ndarray | None"]
 """ik(world_from_flange 4x4, q_near (6,)) -> joints (6,) nearest q_near, or None."""
@@ -64,6 +66,10 @@ REFERENCE_JOINTS = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])
 # 12 x 12 mm patch on the centre line; the near half of the width passes between the
 # fingers), which is how a tip that hangs down is reached without coming from below.
 APPROACH_TILTS_RAD = tuple(np.radians(a) for a in (0.0, 20.0, -20.0, 40.0, -40.0, 60.0, -60.0, 90.0, -90.0))
+# Pitches of the approach out of the tape's plane (about its width axis), tried after every
+# tilt at the pitch before failed: the jaw then closes at this angle to the tape's faces
+# (the 40 mm gap still straddles a 0.2 mm tape; the floppy tape turns into the pads).
+APPROACH_PITCHES_RAD = tuple(np.radians(a) for a in (0.0, 25.0, -25.0))
 MAX_JOINT_STEP_RAD = 0.25      # per ~5 mm of a straight segment: more means a singularity or a flip
 PATH_STEP_M = 0.005
 
@@ -158,6 +164,21 @@ class GripperGeometry:
                       np.array([hx, g + ty, -self.finger_length])))
         return boxes
 
+    def shape(self) -> ToolShape:
+        """The open gripper's solid shape in the flange frame, as the collision check sees
+        it: the two open fingers (with their pads), the palm (40 mm along the jaw, 20 mm
+        beyond each finger, 24 mm thick) and the mount, a 25 mm radius column from the
+        flange to the palm (the simulated gripper's geometry, sim/scene.py)."""
+        F = self.flange_from_tcp
+        fingers = self.finger_boxes_tcp()[:2]
+        g, ty = self.max_opening / 2, self.pad_size[1]
+        palm_z = -self.finger_length
+        parts = [ToolShape.box(name, F, lo, hi) for name, (lo, hi) in zip(("left finger", "right finger"), fingers)]
+        parts.append(ToolShape.box("palm", F, [-0.02, -g - ty - 0.02, palm_z - 0.024], [0.02, g + ty + 0.02, palm_z]))
+        palm_flange = (F @ np.array([0.0, 0.0, palm_z - 0.024, 1.0]))[:3]
+        parts.append(ToolShape.capsule("gripper mount", np.zeros(3), palm_flange, 0.025))
+        return ToolShape.join(*parts)
+
     def check_points_flange(self) -> np.ndarray:
         """(k, 3) points in the flange frame for the safety check: the flange origin, the
         TCP, then the corners of the open fingers' boxes (as :class:`SafeArm` labels them)."""
@@ -192,8 +213,9 @@ class Step:
 @dataclass(frozen=True, eq=False)
 class GraspPlan:
     """Waypoints (in visiting order), the steps that run them, the tip it was planned for,
-    the approach variant chosen, the flange-frame check points of the gripper, and the
-    overall lift direction (unit, grasp to final lift pose)."""
+    the approach variant chosen (tilt in the tape's plane, jaw turned, pitch out of it),
+    the flange-frame check points of the gripper, the overall lift direction (unit, grasp
+    to final lift pose) and the gripper's shape the collision check used."""
 
     waypoints: tuple[Waypoint, ...]
     steps: tuple[Step, ...]
@@ -202,6 +224,8 @@ class GraspPlan:
     flipped: bool
     points_flange: np.ndarray
     lift_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    shape: ToolShape | None = None
+    approach_pitch_rad: float = 0.0
 
     def waypoint(self, name: str) -> Waypoint:
         for w in self.waypoints:
@@ -221,13 +245,15 @@ class GraspPlan:
                           for w in self.waypoints],
             "steps": [[s.action, s.waypoint] for s in self.steps],
             "approach_tilt_deg": float(np.degrees(self.approach_tilt_rad)),
+            "approach_pitch_deg": float(np.degrees(self.approach_pitch_rad)),
             "flipped": self.flipped,
             "lift_direction": self.lift_direction.tolist(),
         }
 
     def describe(self) -> str:
         """Human-readable plan, one line a step (what ``tapecell run`` shows before moving)."""
-        lines = [f"grasp plan (approach tilt {np.degrees(self.approach_tilt_rad):+.0f} deg"
+        pitch = f", pitch {np.degrees(self.approach_pitch_rad):+.0f} deg" if self.approach_pitch_rad else ""
+        lines = [f"grasp plan (approach tilt {np.degrees(self.approach_tilt_rad):+.0f} deg{pitch}"
                  f"{', jaw turned' if self.flipped else ''}):"]
         for s in self.steps:
             if s.waypoint is None:
@@ -265,13 +291,14 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
         tape_base = np.asarray(tape_points, float)[0]
     grasp_position = tip.position - params.inset * tip.trunk
     refusals: list[PlanRefused] = []
-    for tilt in APPROACH_TILTS_RAD:
-        for flipped in (False, True):
-            try:
-                return _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper, limits,
-                                     ik, q_ref, q_start is not None, tape)
-            except PlanRefused as e:
-                refusals.append(e)
+    for pitch in APPROACH_PITCHES_RAD:
+        for tilt in APPROACH_TILTS_RAD:
+            for flipped in (False, True):
+                try:
+                    return _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper, limits,
+                                         ik, q_ref, q_start is not None, tape, pitch)
+                except PlanRefused as e:
+                    refusals.append(e)
     first = refusals[0]
     raise PlanRefused(first.reason, f"{first.detail} (and for all {len(refusals)} approach variants)")
 
@@ -312,12 +339,14 @@ def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
     return Rotation.from_rotvec(axis * angle).as_matrix()
 
 
-def tcp_rotation(tip: TipFrame, tilt: float, flipped: bool) -> np.ndarray:
+def tcp_rotation(tip: TipFrame, tilt: float, flipped: bool, pitch: float = 0.0) -> np.ndarray:
     """world_from_tcp rotation: y (closing axis) along the tape normal, z (approach) along
-    -trunk tilted by ``tilt`` rad about the normal; ``flipped`` turns the jaw half a turn."""
+    -trunk tilted by ``tilt`` rad about the normal, then pitched by ``pitch`` rad out of
+    the tape's plane (towards the normal); ``flipped`` turns the jaw half a turn."""
     t, w, n = tip.rotation[:, 0], tip.rotation[:, 1], tip.rotation[:, 2]
     y = -n if flipped else n
     z = np.cos(tilt) * (-t) + np.sin(tilt) * w   # rotating -t about n stays in the tape's plane
+    z = np.cos(pitch) * z + np.sin(pitch) * n
     z /= np.linalg.norm(z)
     y = y - z * (y @ z)
     y /= np.linalg.norm(y)
@@ -325,8 +354,8 @@ def tcp_rotation(tip: TipFrame, tilt: float, flipped: bool) -> np.ndarray:
 
 
 def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper, limits, ik, q_ref,
-                  check_joint_path, tape) -> GraspPlan:
-    R = tcp_rotation(tip, tilt, flipped)
+                  check_joint_path, tape, pitch=0.0) -> GraspPlan:
+    R = tcp_rotation(tip, tilt, flipped, pitch)
     approach = R[:, 2]
     world_from_tcp = {"pregrasp": _T(R, grasp_position - params.pregrasp_distance * approach),
                       "grasp": _T(R, grasp_position)}
@@ -337,43 +366,111 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
     tcp_from_flange = invert(gripper.flange_from_tcp)
     flange = {k: matrix_to_pose6(T @ tcp_from_flange) for k, T in world_from_tcp.items()}
     points = gripper.check_points_flange()
+    shape = gripper.shape()
     try:
         check_linear_move(limits, flange["pregrasp"], flange["pregrasp"], limits.max_tcp_speed,
-                          limits.max_tcp_accel, points)
+                          limits.max_tcp_accel, points, shape)
         for a, b in zip(names[:-1], names[1:]):
-            check_linear_move(limits, flange[a], flange[b], limits.max_tcp_speed, limits.max_tcp_accel, points)
+            check_linear_move(limits, flange[a], flange[b], limits.max_tcp_speed, limits.max_tcp_accel, points,
+                              shape)
     except SafetyError as e:
         raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits", str(e)) from None
     if tape is not None:
         _check_fingers_clear(tape, world_from_tcp["pregrasp"], world_from_tcp["grasp"], gripper)
-    q_pre = ik(pose6_to_matrix(flange["pregrasp"]), q_ref)
-    if q_pre is None:
-        p = world_from_tcp["pregrasp"][:3, 3]
-        raise PlanRefused("unreachable", f"no joint solution puts the gripper at the pre-grasp pose "
-                                         f"(TCP at {_mm(p)} mm)")
-    if check_joint_path:
-        try:
-            check_joint_move(limits, q_ref, q_pre, limits.max_joint_speed, limits.max_joint_accel, points)
-        except SafetyError as e:
-            raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits",
-                              f"joint move to the pre-grasp pose: {e}") from None
+    q_pre, via = _reach_pregrasp(world_from_tcp["pregrasp"], flange["pregrasp"], tcp_from_flange, q_ref, ik,
+                                 limits, points, shape, check_joint_path)
     q = {"pregrasp": q_pre}
+    path = [q_pre]
     for a, b in zip(names[:-1], names[1:]):
-        q[b] = _follow_line(ik, flange[a], flange[b], q[a], "approach" if b == "grasp" else "lift")
+        q[b], along = _follow_line(ik, flange[a], flange[b], q[a], "approach" if b == "grasp" else "lift")
+        path += along
+    try:
+        check_wrist_clear(limits, np.array(path), "approach and lift")
+    except SafetyError as e:
+        raise PlanRefused("collision", str(e)) from None
     waypoints = tuple(Waypoint(k, world_from_tcp[k], flange[k], q[k]) for k in names)
-    steps = (Step("open_gripper"), Step("move_joints", "pregrasp"), Step("move_linear", "grasp"),
+    first = (Step("move_joints", "pregrasp"),)
+    if via:
+        waypoints = (Waypoint("above", via["world_from_tcp"], via["flange"], via["q"]),) + waypoints
+        first = (Step("move_joints", "above"),) + first
+    steps = (Step("open_gripper"), *first, Step("move_linear", "grasp"),
              Step("close_gripper"), *(Step("move_linear", k) for k in lift_names))
     lift_vector = lifts[-1][:3, 3] - grasp_position
     return GraspPlan(waypoints, steps, tip, float(tilt), bool(flipped), points,
-                     lift_vector / max(np.linalg.norm(lift_vector), 1e-12))
+                     lift_vector / max(np.linalg.norm(lift_vector), 1e-12), shape, float(pitch))
 
 
-def _follow_line(ik: IK, start: np.ndarray, end: np.ndarray, q0: np.ndarray, what: str) -> np.ndarray:
-    """Joints at ``end`` after following the straight flange line from ``start``, keeping
-    one configuration (as ``moveL`` does); refuse where the line leaves the reachable set or
-    passes a singularity (a large joint step between nearby samples)."""
+def _reach_pregrasp(world_from_pre: np.ndarray, flange_pre: np.ndarray, tcp_from_flange: np.ndarray,
+                    q_ref: np.ndarray, ik: IK, limits: SafetyLimits, points: np.ndarray, shape: ToolShape,
+                    check_joint_path: bool) -> tuple[np.ndarray, dict]:
+    """(joints at the pre-grasp pose, the "above" waypoint or {}): the arm configuration
+    nearest ``q_ref`` whose joint move there (straight, or through "above") keeps the wrist
+    and the gripper clear; with the UR5e's own kinematics the other configurations (elbow,
+    wrist, shoulder flipped) are tried when the nearest one is blocked."""
+    T = pose6_to_matrix(flange_pre)
+    q_near = ik(T, q_ref)
+    if q_near is None:
+        raise PlanRefused("unreachable", f"no joint solution puts the gripper at the pre-grasp pose "
+                                         f"(TCP at {_mm(world_from_pre[:3, 3])} mm)")
+    if not check_joint_path:
+        return q_near, {}
+    candidates = [q_near]
+    if ik is ik_nearest:
+        from .kinematics import JOINT_LOWER, JOINT_UPPER, ik_solutions
+
+        others = [q_ref + (q - q_ref + np.pi) % (2 * np.pi) - np.pi for q in ik_solutions(T)]
+        others = [q for q in others if np.all(q >= JOINT_LOWER) and np.all(q <= JOINT_UPPER)
+                  and np.max(np.abs(q - q_near)) > 1e-6]
+        candidates += sorted(others, key=lambda q: float(np.max(np.abs(q - q_ref))))
+    first: SafetyError | None = None
+    for q_pre in candidates:
+        try:
+            check_joint_move(limits, q_ref, q_pre, limits.max_joint_speed, limits.max_joint_accel, points,
+                             shape=shape)
+            return q_pre, {}
+        except SafetyError as e:
+            first = first or e
+            # A straight joint move would sweep the wrist or the gripper through the table
+            # or the part: go through a pose above the pre-grasp instead.
+            via = _via_above(world_from_pre, tcp_from_flange, q_ref, q_pre, ik, limits, points, shape)
+            if via:
+                return q_pre, via
+    raise PlanRefused("collision" if isinstance(first, KeepOutError) else "limits",
+                      f"joint move to the pre-grasp pose: {first}")
+
+
+VIA_RISE_M = 0.15
+"""When the joint move to the pre-grasp pose would hit the table or the part, the arm
+first goes to the pre-grasp pose raised by this much [m] (same orientation and arm
+configuration), then down to it."""
+
+
+def _via_above(world_from_pre: np.ndarray, tcp_from_flange: np.ndarray, q_ref: np.ndarray, q_pre: np.ndarray,
+               ik: IK, limits: SafetyLimits, points: np.ndarray, shape: ToolShape) -> dict:
+    """The "above" waypoint (world_from_tcp, flange pose6, joints) through which both joint
+    moves are clear, or {} when there is none."""
+    T = world_from_pre.copy()
+    T[2, 3] += VIA_RISE_M
+    flange = matrix_to_pose6(T @ tcp_from_flange)
+    q_via = ik(pose6_to_matrix(flange), q_pre)
+    if q_via is None:
+        return {}
+    try:
+        check_joint_move(limits, q_ref, q_via, limits.max_joint_speed, limits.max_joint_accel, points, shape=shape)
+        check_joint_move(limits, q_via, q_pre, limits.max_joint_speed, limits.max_joint_accel, points, shape=shape)
+    except SafetyError:
+        return {}
+    return {"world_from_tcp": T, "flange": flange, "q": q_via}
+
+
+def _follow_line(ik: IK, start: np.ndarray, end: np.ndarray, q0: np.ndarray, what: str) -> tuple:
+    """(joints at ``end``, the joints at every sample on the way) after following the
+    straight flange line from ``start``, keeping one configuration (as ``moveL`` does);
+    refuse where the line leaves the reachable set or passes a singularity (a large joint
+    step between nearby samples)."""
     n = int(np.ceil(np.linalg.norm(end[:3] - start[:3]) / PATH_STEP_M)) + 1
     q = q0
+    along = []
     for pose in interpolate_pose6(start, end, n + 1)[1:]:
         q_next = ik(pose6_to_matrix(pose), q)
         if q_next is None:
@@ -381,7 +478,8 @@ def _follow_line(ik: IK, start: np.ndarray, end: np.ndarray, q0: np.ndarray, wha
         if np.max(np.abs(q_next - q)) > MAX_JOINT_STEP_RAD:
             raise PlanRefused("unreachable", f"the {what} passes a singularity near flange {_mm(pose[:3])} mm")
         q = q_next
-    return q
+        along.append(q)
+    return q, along
 
 
 def _check_fingers_clear(tape: np.ndarray, start: np.ndarray, end: np.ndarray, gripper: GripperGeometry) -> None:
@@ -440,7 +538,7 @@ def execute_plan(plan: GraspPlan, arm: Arm, limits: SafetyLimits, speeds: Speeds
     would violate a limit halfway never starts. On any error the arm is stopped and the
     error re-raised. ``on_step(step, arm)`` is called after each step (logging). Returns
     the steps done."""
-    safe = SafeArm(arm, limits, points_flange=plan.points_flange)
+    safe = SafeArm(arm, limits, points_flange=plan.points_flange, shape=plan.shape)
     _precheck(plan, limits, speeds)
     done: list[Step] = []
     try:
@@ -477,7 +575,8 @@ def _precheck(plan: GraspPlan, limits: SafetyLimits, speeds: Speeds) -> None:
             continue
         target = plan.waypoint(step.waypoint).flange_pose
         start = target if previous is None or step.action == "move_joints" else previous
-        check_linear_move(limits, start, target, speeds.approach, speeds.linear_accel, plan.points_flange)
+        check_linear_move(limits, start, target, speeds.approach, speeds.linear_accel, plan.points_flange,
+                          plan.shape)
         previous = target
 
 

@@ -12,6 +12,14 @@ and tested piecewise against the keep-out box exactly (segment/box slab test). J
 are sampled in joint space through the UR5e forward kinematics, the wrist centres
 included, because a joint move's tool path is not a straight line.
 
+Collisions with the cell's solid boxes (``obstacles``: the table and the part, from the
+cell file's ``[table]`` and ``[part]``): the tool's shape (a :class:`ToolShape`, points
+with radii in the flange frame: the gripper's fingers, palm and mount, or the needle) and
+the wrist's three links (capsules of :data:`WRIST_RADIUS_M` between the UR5e's wrist
+centres and the flange) must stay ``clearance`` metres away from every box along the whole
+motion. This replaces a flat floor under the workspace: a tip hanging low is reached as
+long as the gripper itself clears the table.
+
 :class:`SafeArm` wraps any :class:`~cell.arm.Arm` so no caller can bypass the check.
 """
 from __future__ import annotations
@@ -37,12 +45,93 @@ class KeepOutError(SafetyError):
     """A motion would take a check point into the keep-out box around the part."""
 
 
+class CollisionError(KeepOutError):
+    """A motion would bring the tool or the wrist closer than the clearance to the table
+    or the part."""
+
+
+WRIST_RADIUS_M = 0.040
+"""Radius of the UR5e's wrist housings (about 80 mm across; the simulated arm's wrist
+cylinders, assets/ur5e.xml), as capsules from each wrist centre to the next and to the
+flange."""
+SHAPE_STEP_M = 0.003
+"""Tool shapes are sampled this finely: a surface between samples is at most ~2 mm from
+one, so the clearance actually kept is at least ``clearance`` - 2 mm."""
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A solid axis-aligned box of the cell [m] (world = base frame)."""
+
+    name: str
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        """(...,) distance of points (..., 3) from the box (0 inside)."""
+        d = np.maximum(np.maximum(self.lo - points, points - self.hi), 0.0)
+        return np.linalg.norm(d, axis=-1)
+
+
+@dataclass(frozen=True, eq=False)
+class ToolShape:
+    """A tool's solid shape as spheres: centres (N, 3) in the flange frame [m], radii (N,)
+    [m] (0 for points sampled on a surface) and, for messages, which named part (index
+    into ``parts``) each belongs to."""
+
+    points_flange: np.ndarray
+    radii: np.ndarray
+    parts: tuple = ("tool",)
+    part_index: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.part_index is None:
+            object.__setattr__(self, "part_index", np.zeros(len(self.points_flange), int))
+
+    @classmethod
+    def join(cls, *shapes: "ToolShape") -> "ToolShape":
+        parts: list[str] = []
+        index = []
+        for sh in shapes:
+            index.append(sh.part_index + len(parts))
+            parts += list(sh.parts)
+        return cls(np.vstack([sh.points_flange for sh in shapes]), np.concatenate([sh.radii for sh in shapes]),
+                   tuple(parts), np.concatenate(index))
+
+    @classmethod
+    def points(cls, points_flange: Any, name: str = "tool") -> "ToolShape":
+        """Bare points (radius 0), e.g. the check points of a tool known only by them."""
+        p = np.asarray(points_flange, float).reshape(-1, 3)
+        return cls(p, np.zeros(len(p)), (name,))
+
+    @classmethod
+    def box(cls, name: str, flange_from_box: np.ndarray, lo: Any, hi: Any, step: float = SHAPE_STEP_M) -> "ToolShape":
+        """A box (lo, hi) in its own frame, placed by ``flange_from_box`` (4x4), sampled
+        on its surface."""
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        axes = [np.linspace(lo[k], hi[k], max(int(np.ceil((hi[k] - lo[k]) / step)), 1) + 1) for k in range(3)]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+        p = grid[np.any(np.isclose(grid, lo) | np.isclose(grid, hi), axis=1)]
+        p = (np.asarray(flange_from_box, float)[:3, :3] @ p.T).T + np.asarray(flange_from_box, float)[:3, 3]
+        return cls(p, np.zeros(len(p)), (name,))
+
+    @classmethod
+    def capsule(cls, name: str, a: Any, b: Any, radius: float, step: float = SHAPE_STEP_M) -> "ToolShape":
+        """A capsule from a to b (flange frame) of ``radius`` [m]."""
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        n = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1) + 1
+        p = a + (b - a) * np.linspace(0.0, 1.0, n)[:, None]
+        return cls(p, np.full(n, float(radius)), (name,))
+
+
 @dataclass(frozen=True, eq=False)
 class SafetyLimits:
     """The cell's limits. Boxes are axis-aligned in the base frame (= world) [m].
 
     workspace_min, workspace_max: (3,) box every check point's target must lie in.
     keepout_min, keepout_max: (3,) box around the part no check point may enter.
+    obstacles: :class:`Obstacle` boxes (the table, the part) the tool's shape and the wrist
+    keep ``clearance`` [m] from.
     max_tcp_speed [m/s], max_tcp_accel [m/s^2]: bounds of linear moves.
     max_joint_speed [rad/s], max_joint_accel [rad/s^2]: bounds of joint moves.
     """
@@ -55,6 +144,8 @@ class SafetyLimits:
     keepout_min: np.ndarray
     keepout_max: np.ndarray
     max_joint_accel: float = 1.4
+    obstacles: tuple = ()
+    clearance: float = 0.005
 
     def __post_init__(self) -> None:
         for name in ("workspace_min", "workspace_max", "keepout_min", "keepout_max"):
@@ -71,18 +162,34 @@ class SafetyLimits:
             if not np.isfinite(v) or v <= 0:
                 raise SafetyError(f"limits.{name} must be a positive number")
             object.__setattr__(self, name, v)
+        if not np.isfinite(self.clearance) or self.clearance < 0:
+            raise SafetyError("limits.clearance must be a number >= 0 [m]")
+        object.__setattr__(self, "clearance", float(self.clearance))
+        object.__setattr__(self, "obstacles", tuple(self.obstacles))
 
     @classmethod
-    def from_config(cls, section: Any) -> "SafetyLimits":
+    def from_config(cls, section: Any, obstacles: Any = ()) -> "SafetyLimits":
         """From the cell file's ``limits`` section (``sim.config.LimitsSection``) or any
-        object with the same attributes; ``max_joint_accel`` defaults to UR's 1.4 rad/s^2."""
+        object with the same attributes; ``max_joint_accel`` defaults to UR's 1.4 rad/s^2,
+        ``clearance`` to 5 mm. ``obstacles``: :class:`Obstacle` boxes (see
+        :meth:`from_cell`)."""
         return cls(
             workspace_min=section.workspace_min, workspace_max=section.workspace_max,
             max_tcp_speed=section.max_tcp_speed, max_tcp_accel=section.max_tcp_accel,
             max_joint_speed=section.max_joint_speed,
             keepout_min=section.keepout_min, keepout_max=section.keepout_max,
             max_joint_accel=getattr(section, "max_joint_accel", 1.4),
+            obstacles=tuple(obstacles), clearance=getattr(section, "clearance", 0.005),
         )
+
+    @classmethod
+    def from_cell(cls, cfg: Any) -> "SafetyLimits":
+        """The whole cell's limits: ``[limits]`` with the table and the part of the cell
+        file as obstacles."""
+        from .config import scene_boxes
+
+        obstacles = [Obstacle(b.name, b.center - b.size / 2, b.center + b.size / 2) for b in scene_boxes(cfg)]
+        return cls.from_config(cfg.limits, obstacles)
 
 
 def check_points_flange(flange_from_tool: Any = None, extra_points_flange: Any = None) -> np.ndarray:
@@ -155,12 +262,62 @@ def _point_labels(k: int) -> list[str]:
     return ["flange", "TCP"][:k] + [f"check point {i}" for i in range(2, k)]
 
 
+def _check_clear(limits: SafetyLimits, points: np.ndarray, radii: np.ndarray, names: list[str],
+                 motion: str) -> None:
+    """points (n_samples, k, 3) world, radii (k,), names (k,): raise :class:`CollisionError`
+    where a sphere comes closer than the clearance to an obstacle."""
+    for ob in limits.obstacles:
+        gap = ob.distance(points) - radii           # (n_samples, k)
+        bad = gap < limits.clearance
+        if np.any(bad):
+            i, j = np.unravel_index(np.argmin(np.where(bad, gap, np.inf)), gap.shape)
+            raise CollisionError(f"{motion}: the {names[j]} would come {max(gap[i, j], 0.0) * 1e3:.1f} mm from "
+                                 f"the {ob.name} (clearance {limits.clearance * 1e3:.0f} mm) near "
+                                 f"{_fmt(points[i, j])} m")
+
+
+def _check_tool_clear(limits: SafetyLimits, world_from_flange: np.ndarray, shape: ToolShape, motion: str) -> None:
+    """world_from_flange (n, 4, 4) along a motion: the tool's shape against the obstacles."""
+    if not limits.obstacles:
+        return
+    pts = np.einsum("nij,kj->nki", world_from_flange[:, :3, :3], shape.points_flange) + world_from_flange[:, None, :3, 3]
+    _check_clear(limits, pts, shape.radii, [shape.parts[i] for i in shape.part_index], motion)
+
+
+WRIST_LINKS = (("wrist 1", 3, 4), ("wrist 2", 4, 5), ("wrist 3", 5, 6))
+"""The wrist's links as (name, from DH frame, to DH frame): capsules of WRIST_RADIUS_M."""
+
+
+def check_wrist_clear(limits: SafetyLimits, joint_path: Any, motion: str,
+                      frames: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+    """Raise :class:`CollisionError` unless the wrist's links keep the clearance from the
+    obstacles at every joint vector of ``joint_path`` (n, 6) [rad] (samples of a motion)."""
+    if not limits.obstacles:
+        return
+    if frames is None:
+        from .kinematics import dh_frames as frames
+    s = np.linspace(0.0, 1.0, 6)[:, None]
+    pts, names = [], []
+    for q in np.asarray(joint_path, float).reshape(-1, 6):
+        F = frames(q)
+        row = []
+        for _, a, b in WRIST_LINKS:
+            row.append(F[a, :3, 3] + s * (F[b, :3, 3] - F[a, :3, 3]))
+        pts.append(np.vstack(row))
+    for name, _, _ in WRIST_LINKS:
+        names += [name] * len(s)
+    _check_clear(limits, np.array(pts), np.full(len(names), WRIST_RADIUS_M), names, motion)
+
+
 def check_linear_move(limits: SafetyLimits, start_pose: Any, target_pose: Any, speed: float,
-                      acceleration: float, points_flange: np.ndarray | None = None) -> None:
+                      acceleration: float, points_flange: np.ndarray | None = None,
+                      shape: ToolShape | None = None, q_start: Any = None) -> None:
     """Raise :class:`SafetyError` unless a ``moveL`` of the flange from ``start_pose`` to
     ``target_pose`` (pose6) at ``speed`` m/s / ``acceleration`` m/s^2 keeps every check
     point (``points_flange`` (k, 3), default the flange origin) inside the workspace and
-    out of the keep-out box."""
+    out of the keep-out box, and the tool's ``shape`` (default: the check points) clear of
+    the obstacles. With ``q_start`` (6,) [rad], where the arm starts, the wrist is checked
+    too, in the configuration ``moveL`` keeps (inverse kinematics along the line)."""
     if not 0 < speed <= limits.max_tcp_speed:
         raise SafetyError(f"linear move: speed {speed:g} m/s exceeds the limit {limits.max_tcp_speed:g} m/s")
     if not 0 < acceleration <= limits.max_tcp_accel:
@@ -176,14 +333,38 @@ def check_linear_move(limits: SafetyLimits, start_pose: Any, target_pose: Any, s
     R = Rotation.from_rotvec(poses[:, 3:]).as_matrix()                # (n, 3, 3)
     paths = np.einsum("nij,kj->nki", R, pts) + poses[:, None, :3]    # (n, k, 3)
     _check_box_path(limits, paths, _point_labels(len(pts)), "linear move")
+    if limits.obstacles:
+        T = np.zeros((len(poses), 4, 4))
+        T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, poses[:, :3], 1.0
+        _check_tool_clear(limits, T, shape if shape is not None else ToolShape.points(pts), "linear move")
+        if q_start is not None:
+            check_wrist_clear(limits, line_joints(T[::max(len(T) // 20, 1)], q_start), "linear move")
+
+
+def line_joints(world_from_flange: np.ndarray, q_start: Any) -> np.ndarray:
+    """(n, 6) joints along flange poses (n, 4, 4), each the IK solution nearest the last
+    (the configuration ``moveL`` keeps); poses without a solution are left out (the arm's
+    own reach check refuses those)."""
+    from .kinematics import ik_nearest
+
+    q = np.asarray(q_start, float)
+    out = [q]
+    for T in world_from_flange:
+        q_next = ik_nearest(T, q)
+        if q_next is not None:
+            q = q_next
+            out.append(q)
+    return np.array(out)
 
 
 def check_joint_move(limits: SafetyLimits, q_start: Any, q_target: Any, speed: float, acceleration: float,
                      points_flange: np.ndarray | None = None,
-                     frames: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+                     frames: Callable[[np.ndarray], np.ndarray] | None = None,
+                     shape: ToolShape | None = None) -> None:
     """Raise :class:`SafetyError` unless a joint move from ``q_start`` to ``q_target`` [rad]
     at ``speed`` rad/s / ``acceleration`` rad/s^2 keeps the check points inside the
-    workspace and every check point and wrist centre out of the keep-out box.
+    workspace, every check point and wrist centre out of the keep-out box, and the tool's
+    ``shape`` (default: the check points) and the wrist clear of the obstacles.
     ``frames(q) -> (7, 4, 4)`` are the DH frames (default the UR5e's)."""
     if not 0 < speed <= limits.max_joint_speed:
         raise SafetyError(f"joint move: speed {speed:g} rad/s exceeds the limit {limits.max_joint_speed:g} rad/s")
@@ -195,16 +376,27 @@ def check_joint_move(limits: SafetyLimits, q_start: Any, q_target: Any, speed: f
     pts = check_points_flange() if points_flange is None else np.asarray(points_flange, float)
     qa, qb = np.asarray(q_start, float), np.asarray(q_target, float)
     n = int(np.ceil(np.max(np.abs(qb - qa)) / 0.01)) + 2
-    tool_paths, wrist_paths = [], []
-    for s in np.linspace(0.0, 1.0, n):
-        F = frames(qa + s * (qb - qa))
+    tool_paths, wrist_paths, flanges = [], [], []
+    qs = qa + np.linspace(0.0, 1.0, n)[:, None] * (qb - qa)
+    for q in qs:
+        F = frames(q)
         tool_paths.append((F[-1] @ np.c_[pts, np.ones(len(pts))].T).T[:, :3])
         wrist_paths.append(F[4:6, :3, 3])
+        flanges.append(F[-1])
     _check_box_path(limits, np.array(tool_paths), _point_labels(len(pts)), "joint move")
     wrist = np.array(wrist_paths)
     for j, label in enumerate(("wrist 2 centre", "wrist 3 centre")):
         if np.any(segments_hit_box(wrist[:-1, j], wrist[1:, j], limits.keepout_min, limits.keepout_max)):
             raise KeepOutError(f"joint move: the {label} would enter the keep-out box around the part")
+    if limits.obstacles:
+        # Samples 0.01 rad apart: a tool point ~1 m from the base moves ~10 mm between
+        # two, on a path that is nearly straight there, so against the boxes' faces the
+        # samples are the nearest points (near a box's edge the path may pass a few mm
+        # closer than the samples say; joint moves here go to a pre-grasp pose away from
+        # everything).
+        _check_tool_clear(limits, np.array(flanges), shape if shape is not None else ToolShape.points(pts),
+                          "joint move")
+        check_wrist_clear(limits, qs, "joint move", frames)
 
 
 class SafeArm(Arm):
@@ -212,14 +404,17 @@ class SafeArm(Arm):
 
     ``flange_from_tool`` (4x4 or pose6) is the mounted tool, whose TCP is checked along with
     the flange; ``extra_points_flange`` (N, 3) adds points such as finger tips;
-    ``points_flange`` (k, 3) replaces the whole list (flange origin first). Motions
-    start from the arm's reported pose, so the straight-line check covers the real path.
+    ``points_flange`` (k, 3) replaces the whole list (flange origin first); ``shape`` is the
+    tool's :class:`ToolShape` kept clear of the cell's obstacles (default: the check
+    points). Motions start from the arm's reported pose and joints, so the checks cover the
+    real path.
     """
 
     def __init__(self, arm: Arm, limits: SafetyLimits, flange_from_tool: Any = None,
-                 extra_points_flange: Any = None, points_flange: Any = None) -> None:
+                 extra_points_flange: Any = None, points_flange: Any = None, shape: ToolShape | None = None) -> None:
         self.arm = arm
         self.limits = limits
+        self.shape = shape
         if points_flange is not None:   # a full list, e.g. GripperGeometry.check_points_flange()
             self.points_flange = np.asarray(points_flange, float).reshape(-1, 3)
         else:
@@ -246,11 +441,14 @@ class SafeArm(Arm):
         return self.arm.is_protective_stopped()
 
     def _move_linear(self, pose: np.ndarray, speed: float, acceleration: float) -> None:
-        check_linear_move(self.limits, self.arm.tcp_pose(), pose, speed, acceleration, self.points_flange)
+        q_now = self.arm.joints() if self.limits.obstacles else None
+        check_linear_move(self.limits, self.arm.tcp_pose(), pose, speed, acceleration, self.points_flange,
+                          self.shape, q_now)
         self.arm.move_linear(pose, speed, acceleration)
 
     def _move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:
-        check_joint_move(self.limits, self.arm.joints(), q, speed, acceleration, self.points_flange)
+        check_joint_move(self.limits, self.arm.joints(), q, speed, acceleration, self.points_flange,
+                         shape=self.shape)
         self.arm.move_joints(q, speed, acceleration)
 
     def _stop(self) -> None:

@@ -59,7 +59,7 @@ from tapecell.estimator.errors import TapecellError
 from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import fk, ik_nearest
 from .poses import matrix_to_pose6, pose6_to_matrix, rotation_angle_between
-from .safety import SafetyError, SafetyLimits, check_joint_move, check_linear_move, check_points_flange
+from .safety import SafetyError, SafetyLimits, ToolShape, check_joint_move, check_linear_move, check_points_flange
 from .ur_link import LinkCallError, LinkLost, LinkTimeout, ProcessLink
 
 RTDE_PORT = 30004
@@ -186,7 +186,8 @@ class URArm(Arm):
                  connect_attempts: int = 3, reconnect_attempts: int = 3, retry_delay_s: float = 1.0,
                  stop_deceleration: float = 2.0, stop_joint_deceleration: float = 2.0,
                  dashboard_port: int = 29999, script_port: int = 30002, link: Any = None,
-                 check_kinematics: bool = True, sleep: Callable[[float], None] = time.sleep) -> None:
+                 check_kinematics: bool = True, sleep: Callable[[float], None] = time.sleep,
+                 shape: ToolShape | None = None) -> None:
         from .config import GripperIOSection
 
         if not isinstance(limits, SafetyLimits):
@@ -204,6 +205,7 @@ class URArm(Arm):
         self.host, self.port, self.limits = host, int(port), limits
         self.name = f"UR arm at {host}:{self.port}"
         self.points_flange = check_points_flange(flange_from_tool, extra_points_flange)
+        self.shape = shape
         self.gripper = g
         self.probe_timeout_s = probe_timeout_s
         self.connect_timeout_s, self.call_timeout_s = connect_timeout_s, call_timeout_s
@@ -219,10 +221,14 @@ class URArm(Arm):
         self._last_motion = "linear"
 
     @classmethod
-    def from_config(cls, cfg: Any, flange_from_tool: Any, **kw: Any) -> "URArm":
-        """The arm of a cell file: its ``[robot]`` (address, deadlines, gripper I/O) and ``[limits]``."""
+    def from_config(cls, cfg: Any, flange_from_tool: Any, obstacles: bool = True, **kw: Any) -> "URArm":
+        """The arm of a cell file: its ``[robot]`` (address, deadlines, gripper I/O), ``[limits]``
+        and, with ``obstacles``, its table and part as boxes the tool and the wrist keep the
+        clearance from (calibration turns them off: its grid's moves are checked against the
+        workspace and the keep-out box only, see README)."""
         r = cfg.robot
-        return cls(r.host, r.port, SafetyLimits.from_config(cfg.limits), flange_from_tool=flange_from_tool,
+        limits = SafetyLimits.from_cell(cfg) if obstacles else SafetyLimits.from_config(cfg.limits)
+        return cls(r.host, r.port, limits, flange_from_tool=flange_from_tool,
                    gripper=r.gripper, connect_timeout_s=r.connect_timeout_s, call_timeout_s=r.call_timeout_s,
                    move_margin_s=r.move_margin_s, dashboard_port=r.dashboard_port, script_port=r.script_port, **kw)
 
@@ -400,10 +406,11 @@ class URArm(Arm):
         self._ensure_link()
         self._refuse_if_protective_stopped()
         start = self._receive("getActualTCPPose")
-        check_linear_move(self.limits, start, pose, speed, acceleration, self.points_flange)
+        q_now = np.asarray(self._receive("getActualQ"), float) if self.check_kinematics or self.limits.obstacles else None
+        check_linear_move(self.limits, start, pose, speed, acceleration, self.points_flange, self.shape, q_now)
         target = [float(v) for v in pose]
         if self.check_kinematics:
-            self._check_ik(target, np.asarray(self._receive("getActualQ"), float))
+            self._check_ik(target, q_now)
         if not self._call("control", "isPoseWithinSafetyLimits", target):
             raise SafetyError(f"{self.name}: the controller says pose {_fmt(target)} is outside its "
                               "safety limits or unreachable")
@@ -419,7 +426,7 @@ class URArm(Arm):
         self._ensure_link()
         self._refuse_if_protective_stopped()
         q_now = np.asarray(self._receive("getActualQ"), float)
-        check_joint_move(self.limits, q_now, q, speed, acceleration, self.points_flange)
+        check_joint_move(self.limits, q_now, q, speed, acceleration, self.points_flange, shape=self.shape)
         target = [float(v) for v in q]
         if self.check_kinematics:
             self._check_fk(target, "the target joints")

