@@ -15,7 +15,7 @@ import numpy as np
 
 from tapecell.estimator.errors import TapecellError, TaskFailed
 
-from .poses import matrix_to_pose6, pose6_to_matrix
+from .poses import pose6_to_matrix
 
 PROBE_LABELS = ("tip", "tip_left", "tip_right")
 
@@ -46,6 +46,40 @@ class ProbedPoint:
     label: str
     position: np.ndarray
     target: np.ndarray | None = None
+
+
+PROBE_CONFIRM_M = 0.004
+"""A hypothesis is confirmed when the needle touched tape within this distance of the point
+it stands for [m] ..."""
+PROBE_MARGIN_M = 0.0015
+"""... and at least this much closer than any other hypothesis' point [m]."""
+
+
+def confirmed(distances: Sequence[float | None]) -> int | None:
+    """The one hypothesis the needle confirms, given per hypothesis the distance [m] from its
+    point to where the needle touched tape (None: nothing touched): the closest, when it is
+    within PROBE_CONFIRM_M and clearly closer (PROBE_MARGIN_M) than every other; else None
+    (neighbouring hypotheses may both lie near the tape)."""
+    order = sorted((d, k) for k, d in enumerate(distances) if d is not None)
+    if order and order[0][0] <= PROBE_CONFIRM_M and not (len(order) > 1 and order[1][0] < order[0][0] + PROBE_MARGIN_M):
+        return order[0][1]
+    return None
+
+
+def adopt(estimate: Any, k: int, spec: Any, reason: str) -> Any:
+    """``estimate`` (an ``estimator.Estimate``) with hypothesis ``k`` (0: itself, else its
+    alternative k - 1) as the answer, verdict "ok" for ``reason``: what a probe that
+    confirmed it makes of it. ``spec``: the capture's tape model (its plate chain)."""
+    import dataclasses
+
+    from tapecell.estimator import Verdict, forward_kinematics
+
+    if k == 0:
+        return dataclasses.replace(estimate, verdict=Verdict.OK, verdict_reason=reason)
+    alt = estimate.alternatives[k - 1]
+    shape = forward_kinematics(spec, alt.angles)
+    return dataclasses.replace(estimate, angles=alt.angles, nodes=shape.nodes, tip_position=alt.tip_position,
+                               tip_rotation=alt.tip_rotation, cost=alt.cost, verdict=Verdict.OK, verdict_reason=reason)
 
 
 def tape_points(tip_position: np.ndarray, tip_rotation: np.ndarray, width: float, inset: float) -> dict[str, np.ndarray]:

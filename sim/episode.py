@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from tapecell.cell.probe import PROBE_CONFIRM_M
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -234,14 +235,9 @@ def release_cell() -> None:
         cell.close()
 
 
-PROBE_CONFIRM_M = 0.004
-"""A hypothesis is confirmed when the needle, sent along its tip's normal, touches tape
-within this distance of the point it aimed at [m], ..."""
 PROBE_BEYOND_M = 0.006
 """Past every touched hypothesis' tip the needle also probes this far beyond its end along
 the tape [m]: tape there means that end is not the tape's."""
-PROBE_MARGIN_M = 0.0015
-"""... and at least this much closer than any other hypothesis' touch [m]."""
 
 
 def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None):
@@ -252,7 +248,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     the touched one, None where nothing was touched). The gripper is remounted and opened
     afterwards. ``probes``, when given, gets each probe (label, aimed point, touched point or
     None, cell time) for the recording."""
-    from tapecell.cell.probe import ProbeError, ProbeParams, approach_normal, tape_points
+    from tapecell.cell.probe import ProbeError, ProbeParams, adopt, approach_normal, confirmed, tape_points
     from .arm import SimArmError
     from .prober import SimProber
     from .ur5e import IKError
@@ -302,13 +298,9 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
         sim_arm.select_tool("gripper")
         sim_arm.open_gripper()
     report = [None if d is None else round(1e3 * d, 2) for d in found]
-    order = sorted((d, k) for k, d in enumerate(found) if d is not None)
-    # The closest touch confirms its hypothesis when it is close enough and clearly closer
-    # than any other's (neighbouring hypotheses may both lie near the tape).
-    best, reason = None, ""
-    if order and order[0][0] <= PROBE_CONFIRM_M and not (len(order) > 1 and order[1][0] < order[0][0] + PROBE_MARGIN_M):
-        best = order[0][1]
-        reason = f"hypothesis {best} confirmed by the needle ({1e3 * order[0][0]:.1f} mm from its tip)"
+    best, reason = confirmed(found), ""
+    if best is not None:
+        reason = f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip)"
     elif sum(d is not None and d <= PROBE_CONFIRM_M for d in found) > 1:
         # Several tips lie on the tape (a fold's edge is tape as the true end is): probe
         # where the shapes disagree instead, each at the point of its own end farthest from
@@ -327,13 +319,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                       f"(its tip touched {1e3 * found[k]:.1f} mm away)")
     if best is None:
         return est, report
-    tip, R, alt = hypotheses[best]
-    if alt is None:
-        return dataclasses.replace(est, verdict=Verdict.OK, verdict_reason=reason), report
-    shape = forward_kinematics(est_spec(cell), alt.angles)
-    return dataclasses.replace(est, angles=alt.angles, nodes=shape.nodes, tip_position=alt.tip_position,
-                               tip_rotation=alt.tip_rotation, cost=alt.cost, verdict=Verdict.OK,
-                               verdict_reason=reason), report
+    return adopt(est, best, est_spec(cell), reason), report
 
 
 DISCRIMINATE_M = 0.008

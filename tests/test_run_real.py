@@ -242,3 +242,104 @@ def test_real_cell_path_never_loads_the_simulator(real_like, tmp_path):
     assert any(m.startswith("tapecell.estimator") for m in imported), r.stderr[-2000:]
     assert any(m.startswith("tapecell.cell.planner") for m in imported)
     assert not [m for m in imported if m.split(".")[0] == "mujoco" or m.startswith("tapecell.sim")]
+
+
+def _ambiguous_with_alternative(monkeypatch, offset_m):
+    """The real estimate, forced "ambiguous" with one alternative whose tip lies
+    ``offset_m`` (3,) from the estimate's."""
+    import dataclasses
+
+    import numpy as np
+
+    import tapecell.estimator as estimator
+    from tapecell.estimator.result import Alternative, Verdict
+
+    real_estimate = estimator.estimate
+
+    def ambiguous(*a, **k):
+        est = real_estimate(*a, **k)
+        alt = Alternative(est.cost * 1.05, est.tip_position + np.asarray(offset_m), est.tip_rotation, est.angles)
+        return dataclasses.replace(est, verdict=Verdict.AMBIGUOUS, alternatives=(alt,),
+                                   verdict_reason="a shape with its tip 20 mm away explains the views nearly as well")
+    monkeypatch.setattr(estimator, "estimate", ambiguous)
+    return real_estimate
+
+
+def _guide_needle_to(robot, target, monkeypatch):
+    """Every prompt answers Enter after 'guiding' the arm so the needle tip is at
+    ``target`` (what an operator does in freedrive)."""
+    import numpy as np
+
+    from tapecell.cell.kinematics import ik_nearest
+    from tapecell.cell.poses import invert, pose6_to_matrix
+
+    needle = pose6_to_matrix(load_cell_config().tools.needle.flange_from_tcp)
+    prompts = []
+
+    def ask(prompt=""):
+        prompts.append(prompt)
+        if "needle" in prompt:
+            world_from_needle = np.eye(4)
+            world_from_needle[:3, :3] = np.diag([1.0, -1.0, -1.0])       # pointing down
+            world_from_needle[:3, 3] = target
+            robot.q = ik_nearest(world_from_needle @ invert(needle), robot.q)
+        return ""
+    monkeypatch.setattr("builtins.input", ask)
+    return prompts
+
+
+def test_probe_settles_an_ambiguous_estimate_with_the_needle_then_grasps(real_like, monkeypatch, capsys):
+    """--execute --probe: freedrive, the operator puts the needle on the tape's end, the
+    hypothesis it confirms is planned for and grasped; freedrive ends before any motion."""
+    import numpy as np
+    from fakes import FakeRobot, install_fake_rtde
+
+    images, cameras = real_like
+    real_estimate = _ambiguous_with_alternative(monkeypatch, [0.0, 0.0, 0.02])
+    robot = FakeRobot(np.array(load_cell_config().arm.park_joints))
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    from tapecell.estimator.capture import load_cameras
+    from tapecell.cli.commands.run import grab_capture
+
+    truth_tip = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images)).tip_position
+    prompts = _guide_needle_to(robot, truth_tip + [0.001, 0.0, 0.0], monkeypatch)   # 1 mm off hypothesis 0
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--probe", "--yes"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "hypothesis 0 confirmed by the needle (1.0 mm from its tip)" in out and "grasp executed" in out
+    assert any("needle onto the tape's tip" in p for p in prompts)
+    names = [c[0] for c in robot.log]
+    assert names.index("teachMode") < names.index("endTeachMode") < names.index("moveJ")
+    assert "started freedrive" not in err
+
+
+def test_probe_that_confirms_no_hypothesis_moves_nothing(real_like, monkeypatch, capsys):
+    import numpy as np
+    from fakes import FakeRobot, install_fake_rtde
+
+    images, cameras = real_like
+    real_estimate = _ambiguous_with_alternative(monkeypatch, [0.0, 0.0, 0.02])
+    robot = FakeRobot(np.array(load_cell_config().arm.park_joints))
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    from tapecell.estimator.capture import load_cameras
+    from tapecell.cli.commands.run import grab_capture
+
+    tip = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images)).tip_position
+    _guide_needle_to(robot, tip + [0.0, 0.0, 0.010], monkeypatch)       # halfway between the two
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--probe", "--yes"])
+    out, err = capsys.readouterr()
+    assert code == 1 and "confirms none of the 2 hypotheses" in err and "(their tips are 10.0, 10.0 mm away" in err
+    assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
+    names = [c[0] for c in robot.log]
+    assert "teachMode" in names and "endTeachMode" in names
+
+
+def test_without_probe_an_ambiguous_estimate_says_how_to_settle_it(real_like, monkeypatch, no_robot, capsys):
+    images, cameras = real_like
+    _ambiguous_with_alternative(monkeypatch, [0.0, 0.0, 0.02])
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--yes"])
+    out, err = capsys.readouterr()
+    assert code == 1 and "nothing moved (--execute --probe settles it with the needle" in err

@@ -16,7 +16,12 @@ HELP = """Run the real cell once: grab one image per camera (OpenCV VideoCapture
 the cell file's [robot] camera_devices, or --images DIR holding DIR/000/<camera>.png),
 segment the tape, estimate it with the calibrated cameras (--cameras FILE, tape-cameras/1
 from `tapecell calibrate`), plan a grasp at its tip and print the plan. An estimate whose
-verdict is not "ok" is refused (exit 1): a robot must not act on it.
+verdict is not "ok" is refused (exit 1): a robot must not act on it. With --execute --probe,
+an estimate that is "hidden" or "ambiguous" is settled with the needle first: the arm goes
+into freedrive, you guide the needle onto the middle of the tape's end and press Enter, and
+the hypothesis (the estimate or one of its alternatives) whose tip the needle confirms
+(within 4 mm, 1.5 mm closer than any other) becomes the answer; if none or several are,
+nothing moves. "poor_fit" is always refused: the model does not explain what was seen.
 
 Nothing moves without --execute. With --execute the robot's address and the plan are
 shown and you type 'yes' on the terminal BEFORE any connection is opened (--yes answers
@@ -41,6 +46,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="calibrated cameras (tape-cameras/1)")
     p.add_argument("--images", type=Path, metavar="DIR", help="read images from DIR instead of the cameras")
     add_robot_options(p, "run the grasp plan on the arm")
+    p.add_argument("--probe", action="store_true",
+                   help="with --execute: settle a hidden or ambiguous estimate with the needle, guided by hand "
+                        "in freedrive, before planning (see above)")
     p.add_argument("--rrd", type=Path, metavar="FILE", help="write a rerun recording of every step")
     p.add_argument("--save-capture", type=Path, metavar="DIR",
                    help="keep what the cameras saw as a tape-capture/1 directory (replay with tapecell estimate)")
@@ -121,9 +129,16 @@ def run(args: argparse.Namespace) -> int:
         print(f"estimate: tip [{tip_mm}] mm, cost {est.cost:.4f}, verdict {est.verdict.value}, "
               f"{est.time_s * 1e3:.1f} ms")
         if not est.actionable:
-            raise TaskFailed(f"the estimate's verdict is {est.verdict.value}"
-                             + (f" ({est.verdict_reason})" if est.verdict_reason else "")
-                             + ": a robot must not act on it; nothing moved")
+            why = (f"the estimate's verdict is {est.verdict.value}"
+                   + (f" ({est.verdict_reason})" if est.verdict_reason else "") + ": a robot must not act on it")
+            if est.verdict.value not in PROBED_VERDICTS:
+                raise TaskFailed(f"{why}; nothing moved")
+            if not (args.execute and args.probe):
+                raise TaskFailed(f"{why}; nothing moved (--execute --probe settles it with the needle, guided by "
+                                 "hand)")
+            est = settle_with_needle(cfg, capture, est, story, args.yes)
+            result["verdict"] = est.verdict.value
+            print(f"estimate after probing: {est.verdict_reason}")
 
         def make_plan(q_start, ik=None):
             kw = {} if ik is None else {"ik": ik}
@@ -174,6 +189,45 @@ def run(args: argparse.Namespace) -> int:
             _write(args.rrd, story, result, f"{result['outcome']}: {e}", gripper)
         raise
     return 0
+
+
+PROBED_VERDICTS = ("hidden", "ambiguous")
+"""Verdicts the needle can settle: the shape may be right (or one of its alternatives),
+only not seen well enough to tell."""
+
+
+def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=print):
+    """Freedrive probing of the tape's end on the real arm: the operator guides the needle
+    onto the middle of the tape's end; returns the estimate with the hypothesis the needle
+    confirms as the answer (verdict ok), or raises :class:`TaskFailed` (nothing moved but
+    by hand). The arm is connected for the probe only, and freedrive ends on every path."""
+    from tapecell.cli.options import confirm_robot
+    from tapecell.cell.probe import PROBE_CONFIRM_M, adopt, confirmed, guided_probe
+    from tapecell.cell.ur import URArm
+
+    tips = [est.tip_position] + [a.tip_position for a in est.alternatives]
+    confirm_robot(cfg.robot.host, cfg.robot.port, [
+        f"the estimate is {est.verdict.value} ({len(tips)} hypotheses of the tape's end): start freedrive (teach "
+        "mode); the arm's brakes release and it follows your hand, making no motion of its own",
+        "record the needle tip when you press Enter with it on the middle of the tape's end; freedrive then ends",
+        "then plan the grasp for the hypothesis the needle confirms, show it and ask again before moving"], yes)
+    arm = URArm.from_config(cfg, cfg.tools.needle.flange_from_tcp)
+    with arm:
+        points = guided_probe(arm, cfg.tools.needle.flange_from_tcp, ["tip"], prompt, log)
+    touched = np.asarray(points[0].position, float)
+    distances = [float(np.linalg.norm(touched - t)) for t in tips]
+    story.add("probes", None, [{"label": f"hypothesis {k}", "aimed": t, "touched": touched, "t": None}
+                               for k, t in enumerate(tips)])
+    k = confirmed(distances)
+    listed = ", ".join(f"{1e3 * d:.1f}" for d in distances)
+    if k is None:
+        raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm confirms none of the "
+                         f"{len(tips)} hypotheses of the tape's end (their tips are {listed} mm away; one must be "
+                         f"within {PROBE_CONFIRM_M * 1e3:.0f} mm and clearly the closest); nothing moved")
+    reason = f"hypothesis {k} confirmed by the needle ({1e3 * distances[k]:.1f} mm from its tip)"
+    settled = adopt(est, k, capture.tape, reason)
+    story.add("estimate", None, (capture, settled), "after probing")
+    return settled
 
 
 def _arm_sample(t: float, q, event: str):
