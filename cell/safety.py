@@ -15,7 +15,7 @@ included, because a joint move's tool path is not a straight line.
 Collisions with the cell's solid boxes (``obstacles``: the table and the part, from the
 cell file's ``[table]`` and ``[part]``): the tool's shape (a :class:`ToolShape`, points
 with radii in the flange frame: the gripper's fingers, palm and mount, or the needle) and
-the wrist's three links (capsules of :data:`WRIST_RADIUS_M` between the UR5e's wrist
+the wrist's three links (cylinders of :data:`WRIST_RADIUS_M` between the UR5e's wrist
 centres and the flange) must stay ``clearance`` metres away from every box along the whole
 motion. This replaces a flat floor under the workspace: a tip hanging low is reached as
 long as the gripper itself clears the table.
@@ -52,7 +52,7 @@ class CollisionError(KeepOutError):
 
 WRIST_RADIUS_M = 0.040
 """Radius of the UR5e's wrist housings (about 80 mm across; the simulated arm's wrist
-cylinders, assets/ur5e.xml), as capsules from each wrist centre to the next and to the
+cylinders, assets/ur5e.xml), as cylinders from each wrist centre to the next and to the
 flange."""
 SHAPE_STEP_M = 0.003
 """Tool shapes are sampled this finely: a surface between samples is at most ~2 mm from
@@ -295,29 +295,52 @@ def _check_tool_clear(limits: SafetyLimits, world_from_flange: np.ndarray, shape
     _check_clear(limits, pts, shape.radii, [shape.parts[i] for i in shape.part_index], motion)
 
 
-WRIST_LINKS = (("wrist 1", 3, 4), ("wrist 2", 4, 5), ("wrist 3", 5, 6))
-"""The wrist's links as (name, from DH frame, to DH frame): capsules of WRIST_RADIUS_M."""
+WRIST_LINKS = (("wrist 1", 3, 4, 0.0), ("wrist 2", 4, 5, 0.045), ("wrist 3", 5, 6, 0.045))
+"""The wrist's links as (name, from DH frame, to DH frame, back [m]): cylinders of
+WRIST_RADIUS_M around the line between the two frames' origins, started ``back`` metres
+behind the first (a wrist joint's housing is centred on its joint, 90 mm long); the last
+ends at the flange's face."""
+_RING = np.linspace(0.0, 2 * np.pi, 32, endpoint=False)
+
+
+def _cylinder_surface(a: np.ndarray, b: np.ndarray, radius: float, step: float = 0.005) -> np.ndarray:
+    """Points on the surface of the cylinder from a to b (its side every ``step`` along
+    the axis and every 1/32 turn, ~8 mm apart at 40 mm; its two end discs)."""
+    axis = b - a
+    length = float(np.linalg.norm(axis))
+    z = axis / length
+    e1 = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(z, e1)
+    ring = np.cos(_RING)[:, None] * e1 + np.sin(_RING)[:, None] * e2          # (32, 3)
+    t = np.linspace(0.0, 1.0, max(int(np.ceil(length / step)), 1) + 1)
+    side = a + t[:, None, None] * axis + radius * ring[None]                     # (nt, 32, 3)
+    discs = [c + f * radius * ring for c in (a, b) for f in (0.0, 0.5)]
+    return np.vstack([side.reshape(-1, 3), *discs])
 
 
 def check_wrist_clear(limits: SafetyLimits, joint_path: Any, motion: str,
                       frames: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
     """Raise :class:`CollisionError` unless the wrist's links keep the clearance from the
-    obstacles at every joint vector of ``joint_path`` (n, 6) [rad] (samples of a motion)."""
+    obstacles at every joint vector of ``joint_path`` (n, 6) [rad] (samples of a motion).
+    Compared with the simulated arm's wrist geometry (MuJoCo's distances to the part) at
+    600 random flange poses near it: never clear by 5 mm where MuJoCo's wrist touches the
+    part; a few mm more cautious where both are clear."""
     if not limits.obstacles:
         return
     if frames is None:
         from .kinematics import dh_frames as frames
-    s = np.linspace(0.0, 1.0, 6)[:, None]
-    pts, names = [], []
+    r = WRIST_RADIUS_M
     for q in np.asarray(joint_path, float).reshape(-1, 6):
         F = frames(q)
-        row = []
-        for _, a, b in WRIST_LINKS:
-            row.append(F[a, :3, 3] + s * (F[b, :3, 3] - F[a, :3, 3]))
-        pts.append(np.vstack(row))
-    for name, _, _ in WRIST_LINKS:
-        names += [name] * len(s)
-    _check_clear(limits, np.array(pts), np.full(len(names), WRIST_RADIUS_M), names, motion)
+        for name, i, j, back in WRIST_LINKS:
+            a, b = F[i, :3, 3], F[j, :3, 3]
+            a = a - back * (b - a) / np.linalg.norm(b - a)
+            centre, reach = 0.5 * (a + b), 0.5 * float(np.linalg.norm(b - a)) + r
+            if all(ob.distance(centre) >= reach + limits.clearance for ob in limits.obstacles):
+                continue      # the link's bounding sphere is clear: so is the link
+            pts = _cylinder_surface(a, b, r)
+            _check_clear(limits, pts[None], np.zeros(len(pts)), [name] * len(pts), motion)
 
 
 def check_linear_move(limits: SafetyLimits, start_pose: Any, target_pose: Any, speed: float,

@@ -198,10 +198,10 @@ def test_the_wrist_is_checked_against_the_part_along_a_joint_move():
     from tapecell.cell.safety import CollisionError, check_wrist_clear
 
     limits = _with_boxes()
-    # Flange 60 mm above the part's top, pointing down: the wrist's housings (45 mm) clear it.
-    q = ik_nearest(pose6_to_matrix([0.0, 0.50, 0.10 + 0.06 + 0.0996, *DOWN]), Q0)
+    # Flange 20 mm above the part's top, pointing down: the wrist's housings clear it.
+    q = ik_nearest(pose6_to_matrix([0.0, 0.50, 0.10 + 0.02, *DOWN]), Q0)
     check_wrist_clear(limits, q[None], "pose")
-    q_low = ik_nearest(pose6_to_matrix([0.0, 0.50, 0.10 + 0.03, *DOWN]), Q0)
+    q_low = ik_nearest(pose6_to_matrix([0.0, 0.50, 0.10 + 0.003, *DOWN]), Q0)
     with pytest.raises(CollisionError, match="wrist 3 would come .* from the part"):
         check_wrist_clear(limits, q_low[None], "pose")
     with pytest.raises(CollisionError, match="joint move: the .* from the part"):
