@@ -299,8 +299,13 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
                                          ik, q_ref, q_start is not None, tape, pitch)
                 except PlanRefused as e:
                     refusals.append(e)
-    first = refusals[0]
-    raise PlanRefused(first.reason, f"{first.detail} (and for all {len(refusals)} approach variants)")
+    # The most telling refusal: a collision (the tip is near the part or the table) over an
+    # unreachable pose over a limit (most straight approaches to a low tip start below the
+    # table), with the count of each.
+    counts = {r: sum(e.reason == r for e in refusals) for r in ("collision", "unreachable", "limits")}
+    shown = next(e for r in ("collision", "unreachable", "limits", None) for e in refusals if r is None or e.reason == r)
+    tally = ", ".join(f"{n} {r}" for r, n in counts.items() if n)
+    raise PlanRefused(shown.reason, f"{shown.detail} (all {len(refusals)} approach variants refused: {tally})")
 
 
 def lift_path(world_from_grasp: np.ndarray, tape_base: Any, lift: float, mode: str) -> list[np.ndarray]:
