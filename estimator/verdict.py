@@ -80,6 +80,9 @@ tip's window, longer than this [px] (about 10 mm at the tape): the tape goes on 
 model's end, such as an end seen edge-on as a thin sliver, which the mean boundary distance
 averages away (a wrong "ok" 60 mm off). 15 px refused good fits of curled ends, where an
 edge-on plate's thin line lies a few pixels off the observed one."""
+PAST_END = "shows tape past the model's end"
+"""The words of a ``poor_fit`` reason for tape going on past the model's end (the rest of
+the shape explains the views): a robot with a needle may measure where the end is."""
 UNEXPLAINED_MIN_AREA_PX = 8
 """Regions smaller than this [px] are segmentation speckles, not tape."""
 DISTINCT_TIP_M = 0.010
@@ -287,7 +290,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
             tape = unexplained_px(o, m, v.camera.project(tip_position[None])[0] - np.asarray(xy))
             if tape > UNEXPLAINED_PX:
                 verdict, reason = Verdict.POOR_FIT, (
-                    f"view {k} shows tape past the model's end over {tape:.0f} px (> {UNEXPLAINED_PX} px)")
+                    f"view {k} {PAST_END} over {tape:.0f} px (> {UNEXPLAINED_PX} px)")
                 break
     parallax = _parallax_deg([v.camera.center for v, s_ in zip(views, seen) if s_], tip_position)
     if verdict is Verdict.OK and parallax < MIN_PARALLAX_DEG:

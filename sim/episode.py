@@ -19,6 +19,7 @@ import numpy as np
 
 from tapecell.cell.probe import PROBE_CONFIRM_M
 from tapecell.estimator import Verdict, estimate, forward_kinematics
+from tapecell.estimator.verdict import PAST_END
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
 from tapecell.estimator.metrics import errors
@@ -130,6 +131,16 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             t1 = time.perf_counter()
             probes: list[dict] = []
             est, doc["probed"] = resolve_by_probing(cell, sim_arm, est, capture.tape.width, probes)
+            story.add("probes", float(cell.data.time), probes)
+            story.add("estimate", float(cell.data.time), (capture, est), "after probing")
+            times["probe"] = time.perf_counter() - t1
+        elif est.verdict is Verdict.POOR_FIT and PAST_END in est.verdict_reason:
+            # The tape goes on past the model's end: the needle touches the estimated tip
+            # and then steps along the tape beyond it; where it still touches tape, there
+            # the end is at least.
+            t1 = time.perf_counter()
+            probes = []
+            est, doc["probed_past_end_mm"] = measure_end_by_probing(cell, sim_arm, est, capture.tape.width, probes)
             story.add("probes", float(cell.data.time), probes)
             story.add("estimate", float(cell.data.time), (capture, est), "after probing")
             times["probe"] = time.perf_counter() - t1
@@ -320,6 +331,71 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     if best is None:
         return est, report
     return adopt(est, best, est_spec(cell), reason), report
+
+
+PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, 0.025)
+"""Where the needle probes past a model's end that the views say is short [m, along its
+trunk]; it stops at the first step without tape."""
+
+
+def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None = None):
+    """For a ``poor_fit`` estimate whose views show tape past its end: the needle touches
+    the estimate's tip (it must be tape, within PROBE_CONFIRM_M), then points on the
+    centre line PAST_END_STEPS_M beyond it, until one finds no tape there. Returns (the
+    estimate with verdict "ok" and its tip moved to the last point that was tape, or kept
+    when the first step found none; unchanged when the tip is not tape or tape goes on
+    past the last step; the steps [mm] that were tape)."""
+    from tapecell.cell.probe import ProbeError, ProbeParams, approach_normal, tape_points
+    from .arm import SimArmError
+    from .prober import SimProber
+    from .ur5e import IKError
+
+    params = ProbeParams()
+    tip, R = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)
+    sim_arm.select_tool("needle")
+    prober = SimProber(cell, sim_arm, params)
+
+    def tape_at(label: str, target: np.ndarray) -> bool:
+        first = approach_normal(target, R[:, 2], -target)
+        for normal in (first, -first):
+            touched = None
+            try:
+                touched = prober.probe(label, target, normal).position
+            except Exception as e:    # noqa: BLE001 - an unreachable side is simply not a touch
+                if not isinstance(e, (ProbeError, IKError, SimArmError)):
+                    raise
+            if probes is not None:
+                probes.append({"label": label, "aimed": target, "touched": touched, "t": float(cell.data.time)})
+            if touched is not None and np.linalg.norm(touched - target) < 0.8 * params.standoff:
+                return bool(np.linalg.norm(touched - target) <= PROBE_CONFIRM_M)
+        return False
+
+    found: list[float] = []
+    at_tip = False
+    try:
+        at_tip = tape_at("tip", tape_points(tip, R, width, params.inset)["tip"])
+        if at_tip:
+            for d in PAST_END_STEPS_M:
+                if not tape_at(f"past the end +{d * 1e3:.0f} mm", tip + d * R[:, 0]):
+                    break
+                found.append(d)
+    finally:
+        sim_arm.park()
+        sim_arm.select_tool("gripper")
+        sim_arm.open_gripper()
+    report = [round(d * 1e3, 1) for d in found]
+    if not at_tip or len(found) == len(PAST_END_STEPS_M):
+        return est, report          # no tape at the tip, or tape as far as the needle looked
+    if not found:
+        # Tape at the tip and none 3 mm past it: the model's end is the tape's; what the
+        # views show past it is tape beside the end (a curl of its corner), not beyond.
+        reason = (f"the needle touched tape at the tip and none {PAST_END_STEPS_M[0] * 1e3:.0f} mm past it: "
+                  "the model's end is the tape's")
+        return dataclasses.replace(est, verdict=Verdict.OK, verdict_reason=reason), report
+    reason = (f"the tape's end measured by the needle: tape {found[-1] * 1e3:.0f} mm past the model's end, "
+              f"none at {PAST_END_STEPS_M[len(found)] * 1e3:.0f} mm")
+    return dataclasses.replace(est, tip_position=tip + found[-1] * R[:, 0], verdict=Verdict.OK,
+                               verdict_reason=reason), report
 
 
 DISCRIMINATE_M = 0.008

@@ -213,6 +213,40 @@ def test_needle_confirms_one_hypothesis_of_an_ambiguous_estimate():
     assert chosen.verdict is Verdict.OK and np.allclose(chosen.tip_position, truth[:3, 3])
 
 
+def test_needle_measures_the_end_of_a_fit_the_views_say_is_short():
+    """A poor_fit whose views show tape past the model's end: the needle touches the tip,
+    steps on past it along the tape while it finds tape, and the end is moved there (or
+    kept, where none is found 3 mm past it); a tip off the tape is left refused."""
+    import dataclasses
+
+    from tapecell.cell.config import load_cell_config
+    from tapecell.estimator import Verdict
+    from tapecell.estimator.verdict import PAST_END
+    from tapecell.sim.arm import SimArm
+    from tapecell.sim.cell import SimCell
+    from tapecell.sim.episode import measure_end_by_probing
+
+    cfg = load_cell_config()
+    with SimCell(cfg, seed=3, n_cameras=2, tool="gripper") as cell:
+        arm = SimArm(cell, tool="gripper")
+        est = estimate(cell.capture())
+        truth = cell.tape_tip_frame()
+        true_tip, trunk = truth[:3, 3], truth[:3, 0]
+
+        def poor(tip):
+            """The estimate with the true end frame at ``tip``, poor_fit for tape past it."""
+            return dataclasses.replace(est, tip_position=tip, tip_rotation=truth[:3, :3], verdict=Verdict.POOR_FIT,
+                                       verdict_reason=f"view 1 {PAST_END} over 40 px (> 30 px)")
+        short, steps = measure_end_by_probing(cell, arm, poor(true_tip - 0.010 * trunk), cfg.tape.width)
+        assert short.verdict is Verdict.OK and steps[:2] == [3.0, 6.0]
+        assert np.linalg.norm(short.tip_position - true_tip) < 0.004
+        right, steps = measure_end_by_probing(cell, arm, poor(true_tip), cfg.tape.width)
+        assert right.verdict is Verdict.OK and steps == [] and np.allclose(right.tip_position, true_tip)
+        off = true_tip + 0.025 * truth[:3, 1] + 0.01 * truth[:3, 2]
+        missed, steps = measure_end_by_probing(cell, arm, poor(off), cfg.tape.width)
+        assert missed.verdict is Verdict.POOR_FIT and steps == []
+
+
 def test_episode_recording_shows_its_content_on_opening(tmp_path):
     """The real rerun viewer, opened on an episode's recording, shows the camera images and
     the 3-D scene at once (about 2 % of the screen was bright when everything was logged off
