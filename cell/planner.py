@@ -50,7 +50,7 @@ from tapecell.estimator.errors import TaskFailed
 from tapecell.estimator.geometry import is_rotation
 
 from .arm import Arm, ArmError, ProtectiveStopError
-from .kinematics import ik_nearest
+from .kinematics import fk, ik_nearest
 from .poses import interpolate_pose6, invert, matrix_to_pose6, pose6_to_matrix
 from .safety import (KeepOutError, SafeArm, SafetyError, SafetyLimits, ToolShape, check_joint_move,
                      check_linear_move, check_points_flange, check_wrist_clear)
@@ -395,9 +395,10 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
         raise PlanRefused("collision", str(e)) from None
     waypoints = tuple(Waypoint(k, world_from_tcp[k], flange[k], q[k]) for k in names)
     first = (Step("move_joints", "pregrasp"),)
-    if via:
-        waypoints = (Waypoint("above", via["world_from_tcp"], via["flange"], via["q"]),) + waypoints
-        first = (Step("move_joints", "above"),) + first
+    for name in reversed(list(via)):
+        w = via[name]
+        waypoints = (Waypoint(name, w["world_from_tcp"], w["flange"], w["q"]),) + waypoints
+        first = (Step("move_joints", name),) + first
     steps = (Step("open_gripper"), *first, Step("move_linear", "grasp"),
              Step("close_gripper"), *(Step("move_linear", k) for k in lift_names))
     lift_vector = lifts[-1][:3, 3] - grasp_position
@@ -436,10 +437,11 @@ def _reach_pregrasp(world_from_pre: np.ndarray, flange_pre: np.ndarray, tcp_from
         except SafetyError as e:
             first = first or e
             # A straight joint move would sweep the wrist or the gripper through the table
-            # or the part: go through a pose above the pre-grasp instead.
-            via = _via_above(world_from_pre, tcp_from_flange, q_ref, q_pre, ik, limits, points, shape)
-            if via:
-                return q_pre, via
+            # or the part: go through a pose above the pre-grasp, or high over the part.
+            for via in (_via_above(world_from_pre, tcp_from_flange, q_ref, q_pre, ik, limits, points, shape),
+                        _via_clear(tcp_from_flange, q_ref, q_pre, limits, points, shape)):
+                if via:
+                    return q_pre, via
     raise PlanRefused("collision" if isinstance(first, KeepOutError) else "limits",
                       f"joint move to the pre-grasp pose: {first}")
 
@@ -447,25 +449,44 @@ def _reach_pregrasp(world_from_pre: np.ndarray, flange_pre: np.ndarray, tcp_from
 VIA_RISE_M = 0.15
 """When the joint move to the pre-grasp pose would hit the table or the part, the arm
 first goes to the pre-grasp pose raised by this much [m] (same orientation and arm
-configuration), then down to it."""
+configuration), then down to it; failing that, through :data:`REFERENCE_JOINTS` (high
+over the part, wrist down)."""
+
+
+def _waypoint_at(q: np.ndarray, tcp_from_flange: np.ndarray) -> dict:
+    world_from_flange = fk(q)
+    return {"world_from_tcp": world_from_flange @ invert(tcp_from_flange), "flange": matrix_to_pose6(world_from_flange),
+            "q": np.asarray(q, float)}
+
+
+def _clear_moves(limits, points, shape, *qs) -> bool:
+    """Are the joint moves through ``qs`` in turn clear of every limit and obstacle?"""
+    try:
+        for a, b in zip(qs[:-1], qs[1:]):
+            check_joint_move(limits, a, b, limits.max_joint_speed, limits.max_joint_accel, points, shape=shape)
+    except SafetyError:
+        return False
+    return True
 
 
 def _via_above(world_from_pre: np.ndarray, tcp_from_flange: np.ndarray, q_ref: np.ndarray, q_pre: np.ndarray,
                ik: IK, limits: SafetyLimits, points: np.ndarray, shape: ToolShape) -> dict:
-    """The "above" waypoint (world_from_tcp, flange pose6, joints) through which both joint
-    moves are clear, or {} when there is none."""
+    """{"above": waypoint} through which both joint moves are clear, or {}."""
     T = world_from_pre.copy()
     T[2, 3] += VIA_RISE_M
     flange = matrix_to_pose6(T @ tcp_from_flange)
     q_via = ik(pose6_to_matrix(flange), q_pre)
-    if q_via is None:
+    if q_via is None or not _clear_moves(limits, points, shape, q_ref, q_via, q_pre):
         return {}
-    try:
-        check_joint_move(limits, q_ref, q_via, limits.max_joint_speed, limits.max_joint_accel, points, shape=shape)
-        check_joint_move(limits, q_via, q_pre, limits.max_joint_speed, limits.max_joint_accel, points, shape=shape)
-    except SafetyError:
+    return {"above": {"world_from_tcp": T, "flange": flange, "q": q_via}}
+
+
+def _via_clear(tcp_from_flange: np.ndarray, q_ref: np.ndarray, q_pre: np.ndarray, limits: SafetyLimits,
+               points: np.ndarray, shape: ToolShape) -> dict:
+    """{"clear": REFERENCE_JOINTS} through which both joint moves are clear, or {}."""
+    if np.allclose(q_ref, REFERENCE_JOINTS) or not _clear_moves(limits, points, shape, q_ref, REFERENCE_JOINTS, q_pre):
         return {}
-    return {"world_from_tcp": T, "flange": flange, "q": q_via}
+    return {"clear": _waypoint_at(REFERENCE_JOINTS, tcp_from_flange)}
 
 
 def _follow_line(ik: IK, start: np.ndarray, end: np.ndarray, q0: np.ndarray, what: str) -> tuple:
