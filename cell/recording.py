@@ -149,14 +149,16 @@ def open_recording(path: str | os.PathLike, app_id: str = "tapecell",
     # A unique hidden name rather than mkstemp, so the file gets the usual permissions.
     tmp = path.parent / f".{path.name}.{uuid.uuid4().hex}.tmp"
     stream = RecordingFile(path, tmp, app_id)
+    # Known as open before its file exists: a SIGTERM from here on leaves no .tmp behind.
+    _OPEN.add(stream)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         stream.save(tmp, default_blueprint=default_blueprint(camera_names))
     except (OSError, RuntimeError) as e:  # rerun reports file errors as RuntimeError
+        _OPEN.discard(stream)
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise RecordingError(f"{path}: cannot write the recording ({e})") from None
-    _OPEN.add(stream)
     return stream
 
 
@@ -176,9 +178,9 @@ def close_recording(stream: rr.RecordingStream) -> None:
     """Flush and close the stream; a :class:`RecordingFile` is renamed into place."""
     stream.flush()
     stream.disconnect()
-    _OPEN.discard(stream)
     if isinstance(stream, RecordingFile) and stream.temp_path.exists():
         os.replace(stream.temp_path, stream.path)
+    _OPEN.discard(stream)     # only now: until the rename, an interruption removes the .tmp
 
 
 def discard_recording(stream: rr.RecordingStream) -> None:
