@@ -53,7 +53,6 @@ import contextlib
 import dataclasses
 import os
 import uuid
-import weakref
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping, Sequence
 
@@ -162,9 +161,11 @@ def open_recording(path: str | os.PathLike, app_id: str = "tapecell",
     return stream
 
 
-_OPEN: "weakref.WeakSet[RecordingFile]" = weakref.WeakSet()
+_OPEN: "set[RecordingFile]" = set()
 """Recordings not yet closed or discarded: removed at exit, so a process that ends without
-closing one (an uncaught error, SIGTERM through the CLI) leaves no hidden .tmp file."""
+closing one (an uncaught error, SIGTERM through the CLI) leaves no hidden .tmp file. Held
+strongly: a stream whose opening was interrupted is referenced by nothing else, and a weak
+set lost it (and its .tmp) as soon as it was collected."""
 
 
 @atexit.register
