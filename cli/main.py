@@ -59,8 +59,15 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     in_main_thread = threading.current_thread() is threading.main_thread()
     previous = signal.signal(signal.SIGTERM, _terminate) if in_main_thread else None
+    _TERMINATED.clear()
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        if _TERMINATED.is_set():
+            # The signal's exception landed where Python ignores exceptions (a finaliser,
+            # __del__, running at that moment) and the command went on to its end.
+            print("tapecell: terminated", file=sys.stderr)
+            return 143
+        return code
     except TapecellError as e:
         print(f"tapecell: error: {_one_line(e)}", file=sys.stderr)
         return e.exit_code
@@ -80,7 +87,12 @@ class Terminated(BaseException):
     temporary files) runs as for Ctrl-C."""
 
 
+_TERMINATED = threading.Event()
+"""Set by SIGTERM, in case its exception is swallowed (see main)."""
+
+
 def _terminate(signum, frame) -> None:
+    _TERMINATED.set()
     raise Terminated()
 
 
