@@ -14,7 +14,8 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore mask and
   in front of every scene box, and the end stands against the background there (the tip
   edge within ``EDGE_PX`` of observed background: a tip over the tape's own body is not
-  located by that silhouette). Fewer than two such views: ``hidden``.
+  located by that silhouette) and is not seen edge-on as a sliver (``THIN_END_PX``). Fewer
+  than two such views: ``hidden``.
 - Can the end's depth be told? The cameras that see it must look at it from directions at
   least ``MIN_PARALLAX_DEG`` apart, else ``ambiguous``.
 - Does a distinct shape explain the views nearly as well? An alternative whose tip is more
@@ -217,6 +218,29 @@ def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray) 
     return best
 
 
+THIN_END_PX = 2.0
+"""A view whose observed tape is at most this many pixels thick (half-width: the largest
+distance to background) everywhere within END_WINDOW_PX of the tip's projection sees the
+end edge-on: every pixel of a 1-3 px sliver is on its outline, so the tip edge's middle
+"on the outline" says nothing about where along the sliver the end is (a wrong "ok"
+12.9 mm off, its model end 25 px short of the sliver's)."""
+
+
+def _thin_at(observed: np.ndarray, origin: tuple[int, int], tip_px: np.ndarray) -> bool:
+    """Is the observed tape within END_WINDOW_PX of ``tip_px`` (image pixels) a sliver?"""
+    h, w = observed.shape
+    u, v = int(round(tip_px[0])) - origin[0], int(round(tip_px[1])) - origin[1]
+    r = END_WINDOW_PX
+    a0, a1, b0, b1 = max(0, v - r), min(h, v + r + 1), max(0, u - r), min(w, u + r + 1)
+    if a1 <= a0 or b1 <= b0:
+        return False
+    window = np.ascontiguousarray(observed[a0:a1, b0:b1])
+    if not window.any():
+        return False
+    half = cv2.distanceTransform(np.pad(window, 1), cv2.DIST_L2, 3)
+    return float(half.max()) <= THIN_END_PX
+
+
 def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray) -> bool:
     """Do the tip edge's ``points`` (3, 3: a corner, the middle, the other corner) project
     within EDGE_PX of observed background (the crop's outside counts as background): the
@@ -280,6 +304,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer([-0.5, 0.0, 0.5], width * tip_rotation[:, 1])
     seen = [s_ and _on_outline(v, o, xy, edge) and _continuation_visible(v, boxes, tip_position, tip_rotation, width)
+            and not _thin_at(o, xy, v.camera.project(tip_position[None])[0])
             for s_, v, o, xy in zip(seen, views, observed, origins)]
     ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(seen), best_cost, tip_position, alternatives)

@@ -210,3 +210,20 @@ def test_an_end_at_an_occluders_edge_is_not_located():
     ignore = np.zeros((200, 200), bool)
     ignore[:, 100:] = True
     assert not _continuation_visible(View(cam, view.mask, ignore), (), tip, tip_rotation, width)
+
+
+def test_an_end_seen_edge_on_as_a_sliver_does_not_locate_its_tip():
+    """Every pixel of a 1-3 px sliver is on its outline: a view whose tape near the tip's
+    projection is that thin says nothing about where along it the end is."""
+    from tapecell.estimator.verdict import _thin_at
+
+    def band(rows: int) -> np.ndarray:
+        m = np.zeros((60, 80), np.uint8)
+        m[30 - rows // 2:30 - rows // 2 + rows, 5:71] = 1
+        return m
+    tip = np.array([70.0, 30.0])
+    assert _thin_at(band(3), (0, 0), tip) and _thin_at(band(4), (0, 0), tip)      # seen edge-on
+    assert not _thin_at(band(6), (0, 0), tip) and not _thin_at(band(13), (0, 0), tip)
+    assert not _thin_at(band(3), (0, 0), tip + [200.0, 0.0])       # no tape near the tip: not this rule's
+    # In a crop that starts elsewhere in the image, the tip's image pixel is shifted alike.
+    assert _thin_at(band(3), (100, 50), tip + [100.0, 50.0]) and not _thin_at(band(3), (100, 50), tip)
