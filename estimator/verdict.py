@@ -304,10 +304,13 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer([-0.5, 0.0, 0.5], width * tip_rotation[:, 1])
     seen = [s_ and _on_outline(v, o, xy, edge) and _continuation_visible(v, boxes, tip_position, tip_rotation, width)
-            and not _thin_at(o, xy, v.camera.project(tip_position[None])[0])
             for s_, v, o, xy in zip(seen, views, observed, origins)]
+    # A view that sees the end edge-on as a sliver does not locate it (it does not count
+    # towards the two), but what it shows is still held against the model below.
+    locates = [s_ and not _thin_at(o, xy, v.camera.project(tip_position[None])[0])
+               for s_, v, o, xy in zip(seen, views, observed, origins)]
     ends = end_offsets(views, observed, models, origins, tip_position)
-    verdict, reason = judge(offsets, sum(seen), best_cost, tip_position, alternatives)
+    verdict, reason = judge(offsets, sum(locates), best_cost, tip_position, alternatives)
     if verdict is not Verdict.POOR_FIT:
         for k, (v, o, m, xy) in enumerate(zip(views, observed, models, origins)):
             if not seen[k]:
@@ -317,7 +320,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
                 verdict, reason = Verdict.POOR_FIT, (
                     f"view {k} {PAST_END} over {tape:.0f} px (> {UNEXPLAINED_PX} px)")
                 break
-    parallax = _parallax_deg([v.camera.center for v, s_ in zip(views, seen) if s_], tip_position)
+    parallax = _parallax_deg([v.camera.center for v, s_ in zip(views, locates) if s_], tip_position)
     if verdict is Verdict.OK and parallax < MIN_PARALLAX_DEG:
         verdict, reason = Verdict.AMBIGUOUS, (f"the cameras that see the free end look at it from directions "
                                               f"{parallax:.1f} deg apart (< {MIN_PARALLAX_DEG:g}): its depth is "
@@ -327,7 +330,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
         k = bad_end[0]
         verdict, reason = Verdict.POOR_FIT, (f"view {k} does not explain the free end: mean boundary distance "
                                              f"{ends[k]:.1f} px around the tip > {END_OFFSET_PX:g} px")
-    return Judgement(verdict, reason, sum(seen), offsets)
+    return Judgement(verdict, reason, sum(locates), offsets)
 
 
 def is_close_alternative(cost: float, best_cost: float) -> bool:
