@@ -53,6 +53,11 @@ EDGE_PX = 10
 (its two corners and its middle) must lie within this many pixels (~4 mm at the tape) of
 observed background (a tip in front of or behind the tape's own body is not located by
 that silhouette; 3 px refused 7 of 60 good sim fits whose estimated edge was a few px in)."""
+EDGE_RUN_PX = 3
+EDGE_RUN_FRACTION = 0.25
+"""... or a stretch of the tip edge from a corner, at least this fraction of its width, must
+lie within EDGE_RUN_PX of observed background: an end hooked over the tape's body shows
+part of its edge against the background (a notch's side), and that part locates it."""
 FOLD_DEG = 120.0
 """A free end that turns back by more than this [deg] from the tape's first plate is folded
 back towards the body; an "ok" fit of a fold gets the estimator's thorough second look,
@@ -81,6 +86,11 @@ tip's window, longer than this [px] (about 10 mm at the tape): the tape goes on 
 model's end, such as an end seen edge-on as a thin sliver, which the mean boundary distance
 averages away (a wrong "ok" 60 mm off). 15 px refused good fits of curled ends, where an
 edge-on plate's thin line lies a few pixels off the observed one."""
+LOCATE_UNEXPLAINED_PX = 15
+"""A view locates the free end only where observed tape left unexplained near the tip (see
+``UNEXPLAINED_PX``) is at most this long [px, ~5 mm at the tape]: a shorter unexplained
+region does not make the fit poor, but the view's end may be elsewhere (a wrong "ok" 12.9 mm
+off had 25 px of it in the one view that located the end besides a sliver)."""
 PAST_END = "shows tape past the model's end"
 """The words of a ``poor_fit`` reason for tape going on past the model's end (the rest of
 the shape explains the views): a robot with a needle may measure where the end is."""
@@ -241,25 +251,98 @@ def _thin_at(observed: np.ndarray, origin: tuple[int, int], tip_px: np.ndarray) 
     return float(half.max()) <= THIN_END_PX
 
 
-def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray) -> bool:
-    """Do the tip edge's ``points`` (3, 3: a corner, the middle, the other corner) project
-    within EDGE_PX of observed background (the crop's outside counts as background): the
-    middle and at least one corner? (A tape seen end-on puts its corners near the outline
-    and its middle inside the silhouette, where nothing locates the end.)"""
-    uv = view.camera.project(points)
+SLIVER_END_PX = 4.0
+"""A view that sees the end as a sliver locates it only where the sliver ends where the
+model's does: along the sliver, their farthest pixels past the tip (within
+``SLIVER_BAND_PX`` of its line) at most this far apart [px] (the wrong "ok" of
+``THIN_END_PX`` had its model end 25 px short of the sliver's end)."""
+SLIVER_BAND_PX = 4.0
+"""Half width [px] of the band along a sliver in which its end and the model's are found."""
+SLIVER_MIN_TRUNK_PX = 3.0
+"""The tape's last 10 mm must project at least this long [px] for a sliver's direction past
+the tip to be known (an end seen end-on is not located by its sliver)."""
+
+
+def sliver_end_gap(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray, trunk_px: np.ndarray) -> float:
+    """How far apart [px] the observed sliver's end and the model's are, along the sliver
+    past the tip (inf where that cannot be told). ``observed``, ``model``: uint8 0/1 crops;
+    ``tip_px``: the tip's projection in crop pixels; ``trunk_px``: the image direction of
+    the tape's last 10 mm towards the tip [px]."""
+    if not (np.all(np.isfinite(tip_px)) and np.all(np.isfinite(trunk_px))):
+        return np.inf
+    if float(np.linalg.norm(trunk_px)) < SLIVER_MIN_TRUNK_PX:
+        return np.inf
     h, w = observed.shape
-    hits = []
+    r = END_WINDOW_PX
+    u, v = int(round(tip_px[0])), int(round(tip_px[1]))
+    a0, a1, b0, b1 = max(0, v - r), min(h, v + r + 1), max(0, u - r), min(w, u + r + 1)
+    if a1 <= a0 or b1 <= b0:
+        return np.inf
+    ys, xs = np.nonzero(observed[a0:a1, b0:b1])
+    if len(xs) < 3:
+        return np.inf
+    d_obs = np.column_stack([xs + b0 - tip_px[0], ys + a0 - tip_px[1]])
+    # The sliver's line: its pixels' main direction, pointed past the tip.
+    centred = d_obs - d_obs.mean(axis=0)
+    line = np.linalg.eigh(centred.T @ centred)[1][:, -1]
+    if line @ trunk_px < 0:
+        line = -line
+    ym, xm = np.nonzero(model[a0:a1, b0:b1])
+    if len(xm) == 0:
+        return np.inf
+    d_mod = np.column_stack([xm + b0 - tip_px[0], ym + a0 - tip_px[1]])
+    normal = np.array([-line[1], line[0]])
+    ends = []
+    for d in (d_obs, d_mod):
+        band = np.abs(d @ normal) <= SLIVER_BAND_PX
+        if not band.any():
+            return np.inf
+        ends.append(float((d[band] @ line).max()))
+    return abs(ends[0] - ends[1])
+
+
+def _near_background(observed: np.ndarray, x: int, y: int, r: int) -> bool:
+    """Is there observed background within ``r`` px (a square) of crop pixel (x, y)? (The
+    crop's outside counts as background.)"""
+    h, w = observed.shape
+    x0, x1, y0, y1 = x - r, x + r + 1, y - r, y + r + 1
+    if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
+        return True
+    return bool((observed[y0:y1, x0:x1] == 0).any())
+
+
+def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray) -> bool:
+    """Does the tip edge (``points`` (k, 3), k odd, evenly from one corner to the other)
+    lie at the observed outline? Either its middle and a corner project within EDGE_PX of
+    observed background, or a stretch of it from a corner, at least EDGE_RUN_FRACTION of
+    its width, lies within EDGE_RUN_PX of it (an end hooked over the body: part of its edge
+    is seen against the background, the rest over the body). (A tape seen end-on puts its
+    corners near the outline and its middle inside the silhouette, where nothing locates
+    the end.)"""
+    uv = view.camera.project(points)
+    k = len(points)
+    loose, tight = [], []
     for u, v in uv:
         if not (np.isfinite(u) and np.isfinite(v)):
-            hits.append(False)
+            loose.append(False)
+            tight.append(False)
             continue
         x, y = int(round(u)) - origin[0], int(round(v)) - origin[1]
-        x0, x1, y0, y1 = x - EDGE_PX, x + EDGE_PX + 1, y - EDGE_PX, y + EDGE_PX + 1
-        if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
-            hits.append(True)
-            continue
-        hits.append(bool((observed[y0:y1, x0:x1] == 0).any()))
-    return hits[1] and (hits[0] or hits[2])
+        loose.append(_near_background(observed, x, y, EDGE_PX))
+        tight.append(_near_background(observed, x, y, EDGE_RUN_PX))
+    if loose[k // 2] and (loose[0] or loose[-1]):
+        return True
+    run = int(np.ceil(EDGE_RUN_FRACTION * (k - 1))) + 1
+    return all(tight[:run]) or all(tight[k - run:])
+
+
+def _sliver_locates(view: View, observed: np.ndarray, model: np.ndarray, origin: tuple[int, int],
+                    tip_position: np.ndarray, tip_rotation: np.ndarray) -> bool:
+    """Does ``view``, which sees the end as a sliver, locate it: does the sliver end where
+    the model's end does (:func:`sliver_end_gap`)?"""
+    uv = view.camera.project(np.vstack([tip_position, tip_position - 0.010 * tip_rotation[:, 0]]))
+    tip_px = uv[0] - np.asarray(origin, float)
+    return sliver_end_gap(observed, model, tip_px, uv[0] - uv[1]) <= SLIVER_END_PX
 
 
 def _visible(view: View, points: np.ndarray, boxes: Sequence[Box]) -> np.ndarray:
@@ -302,20 +385,24 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     areas, lengths = sizes(observed)
     offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
-    edge = tip_position + np.outer([-0.5, 0.0, 0.5], width * tip_rotation[:, 1])
+    edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
     seen = [s_ and _on_outline(v, o, xy, edge) and _continuation_visible(v, boxes, tip_position, tip_rotation, width)
             for s_, v, o, xy in zip(seen, views, observed, origins)]
     # A view that sees the end edge-on as a sliver does not locate it (it does not count
     # towards the two), but what it shows is still held against the model below.
-    locates = [s_ and not _thin_at(o, xy, v.camera.project(tip_position[None])[0])
-               for s_, v, o, xy in zip(seen, views, observed, origins)]
+    # Observed tape near the tip that the model leaves unexplained, per view that sees the end.
+    extra = [unexplained_px(o, m, v.camera.project(tip_position[None])[0] - np.asarray(xy)) if s_ else 0.0
+             for s_, v, o, m, xy in zip(seen, views, observed, models, origins)]
+    # A view locates the end where nothing near it is left unexplained, and, where it sees
+    # the end edge-on as a sliver, where the sliver ends with the model.
+    locates = [s_ and x <= LOCATE_UNEXPLAINED_PX
+               and (not _thin_at(o, xy, v.camera.project(tip_position[None])[0])
+                    or _sliver_locates(v, o, m, xy, tip_position, tip_rotation))
+               for s_, x, v, o, m, xy in zip(seen, extra, views, observed, models, origins)]
     ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(locates), best_cost, tip_position, alternatives)
     if verdict is not Verdict.POOR_FIT:
-        for k, (v, o, m, xy) in enumerate(zip(views, observed, models, origins)):
-            if not seen[k]:
-                continue
-            tape = unexplained_px(o, m, v.camera.project(tip_position[None])[0] - np.asarray(xy))
+        for k, tape in enumerate(extra):
             if tape > UNEXPLAINED_PX:
                 verdict, reason = Verdict.POOR_FIT, (
                     f"view {k} {PAST_END} over {tape:.0f} px (> {UNEXPLAINED_PX} px)")

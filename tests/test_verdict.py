@@ -227,3 +227,41 @@ def test_an_end_seen_edge_on_as_a_sliver_does_not_locate_its_tip():
     assert not _thin_at(band(3), (0, 0), tip + [200.0, 0.0])       # no tape near the tip: not this rule's
     # In a crop that starts elsewhere in the image, the tip's image pixel is shifted alike.
     assert _thin_at(band(3), (100, 50), tip + [100.0, 50.0]) and not _thin_at(band(3), (100, 50), tip)
+
+
+def test_an_end_hooked_over_the_body_is_located_by_the_part_of_its_edge_against_the_background():
+    """The tip edge's middle over the body, but a quarter of the edge from one corner on the
+    outline (a notch's side): that view locates the end; the same edge well inside the
+    silhouette does not."""
+    from tapecell.estimator import Camera
+    from tapecell.estimator.verdict import _on_outline
+
+    cam = Camera("c", 200, 200, np.array([[100.0, 0, 100], [0, 100.0, 100], [0, 0, 1]]), np.zeros(5),
+                 np.eye(3), np.zeros(3))
+    observed = np.zeros((200, 200), np.uint8)
+    observed[40:160, 60:140] = 1      # the body
+    observed[40:101, 140:180] = 1     # the end hooked over it, its edge on the row v = 100
+    # The edge from u = 60 (the body's side) to u = 180 (the hook's corner), 9 points: its
+    # middle (u = 120) 20 px deep in the body.
+    edge = np.column_stack([np.linspace(-0.4, 0.8, 9), np.zeros(9), np.ones(9)])
+    view = View(cam, observed.astype(bool))
+    assert _on_outline(view, observed, (0, 0), edge)
+    inside = edge - np.array([0.0, 0.15, 0.0])   # the row v = 85: 15 px inside the hook
+    assert not _on_outline(view, observed, (0, 0), inside)
+
+
+def test_a_sliver_locates_the_end_only_where_it_ends_with_the_model():
+    """An end seen edge-on: the gap along the sliver between its end and the model's."""
+    from tapecell.estimator.verdict import SLIVER_END_PX, sliver_end_gap
+
+    observed = np.zeros((100, 100), np.uint8)
+    observed[20:80, 49:51] = 1                    # a 2 px sliver ending at v = 20
+    model = np.zeros_like(observed)
+    model[21:80, 49:51] = 1                       # the model ends with it
+    tip, trunk = np.array([50.0, 21.0]), np.array([0.0, -10.0])   # pointing up, past the tip
+    assert sliver_end_gap(observed, model, tip, trunk) <= SLIVER_END_PX
+    short = np.zeros_like(observed)
+    short[35:80, 49:51] = 1                       # the model ends 15 px short
+    assert sliver_end_gap(observed, short, np.array([50.0, 35.0]), trunk) > SLIVER_END_PX
+    # Seen end-on (the trunk projects to a point): the sliver cannot tell.
+    assert sliver_end_gap(observed, model, tip, np.array([0.5, 0.5])) == np.inf
