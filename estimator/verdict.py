@@ -69,6 +69,9 @@ BEYOND_M = (0.003, 0.006)
 able to see: where the tape's continuation would be hidden by a scene box, lie on ignored
 pixels or leave the image, the silhouette may end at that occluder's edge, not at the tape's
 end (a wrong "ok" 13 mm off: a shell tape whose end went on behind the part)."""
+CONTINUATION_STEPS = 12
+"""Points per line, evenly up to BEYOND_M's last, at which a view is asked whether it shows
+background past the tip before an occluder."""
 TIP_SPAN_M = 0.005
 """Length of the free end [m] whose visibility decides whether a camera sees it."""
 TIP_SEEN_FRACTION = 0.5
@@ -362,12 +365,36 @@ def _visible(view: View, points: np.ndarray, boxes: Sequence[Box]) -> np.ndarray
 
 
 def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.ndarray,
-                           tip_rotation: np.ndarray, width: float) -> bool:
+                           tip_rotation: np.ndarray, width: float, observed: np.ndarray | None = None,
+                           origin: tuple[int, int] = (0, 0)) -> bool:
     """Would most points BEYOND_M past the tip edge (its middle and near its corners) be
-    seen by ``view`` (see :func:`_visible`)?"""
+    seen by ``view`` (see :func:`_visible`)? Or, where they would not, does the view show
+    background past the tip before the occluder (``observed``: the view's silhouette crop
+    whose top-left pixel is ``origin``): walking out from the tip edge along the trunk, on
+    at least two of three lines, a seen pixel of background comes before any point the view
+    cannot see (the silhouette ends short of the image's border, the box or the ignored
+    pixels, so its end is the tape's)."""
     across = np.outer([-0.4, 0.0, 0.4], width * tip_rotation[:, 1])
     points = np.vstack([tip_position + d * tip_rotation[:, 0] + across for d in BEYOND_M])
-    return int(np.count_nonzero(_visible(view, points, boxes))) > len(points) // 2
+    if int(np.count_nonzero(_visible(view, points, boxes))) > len(points) // 2:
+        return True
+    if observed is None:
+        return False
+    steps = np.linspace(0.0, BEYOND_M[-1], CONTINUATION_STEPS + 1)[1:]
+    h, w = observed.shape
+    ended = 0
+    for a in across:
+        line = tip_position + a + np.outer(steps, tip_rotation[:, 0])
+        seen = _visible(view, line, boxes)
+        uv = view.camera.project(line)
+        for ok, (u, v) in zip(seen, uv):
+            if not ok:
+                break
+            x, y = int(round(u)) - origin[0], int(round(v)) - origin[1]
+            if not (0 <= x < w and 0 <= y < h) or observed[y, x] == 0:
+                ended += 1
+                break
+    return ended >= 2
 
 
 def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]) -> list[bool]:
@@ -386,7 +413,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
-    seen = [s_ and _on_outline(v, o, xy, edge) and _continuation_visible(v, boxes, tip_position, tip_rotation, width)
+    seen = [s_ and _on_outline(v, o, xy, edge) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
             for s_, v, o, xy in zip(seen, views, observed, origins)]
     # A view that sees the end edge-on as a sliver does not locate it (it does not count
     # towards the two), but what it shows is still held against the model below.

@@ -265,3 +265,25 @@ def test_a_sliver_locates_the_end_only_where_it_ends_with_the_model():
     assert sliver_end_gap(observed, short, np.array([50.0, 35.0]), trunk) > SLIVER_END_PX
     # Seen end-on (the trunk projects to a point): the sliver cannot tell.
     assert sliver_end_gap(observed, model, tip, np.array([0.5, 0.5])) == np.inf
+
+
+def test_an_end_short_of_the_image_border_is_located_one_at_the_border_is_not():
+    """The tape's continuation past the tip would leave the image: where the view shows
+    background between the tip and the border the silhouette's end is the tape's; where the
+    silhouette runs into the border it may go on beyond it."""
+    from tapecell.estimator import Camera
+    from tapecell.estimator.verdict import _continuation_visible
+
+    cam = Camera("c", 200, 200, np.array([[1000.0, 0, 100], [0, 1000.0, 100], [0, 0, 1]]), np.zeros(5),
+                 np.eye(3), np.zeros(3))
+    # 1 px per mm at z = 1 m: the tip on the row v = 196, the tape hanging down the image (+y).
+    tip = np.array([0.0, 0.096, 1.0])
+    tip_rotation = np.column_stack([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    ends_short = np.zeros((200, 200), np.uint8)
+    ends_short[100:197, 85:116] = 1
+    view = View(cam, ends_short.astype(bool))
+    assert _continuation_visible(view, [], tip, tip_rotation, 0.030, ends_short, (0, 0))
+    at_border = np.zeros((200, 200), np.uint8)
+    at_border[100:200, 85:116] = 1
+    assert not _continuation_visible(View(cam, at_border.astype(bool)), [], tip, tip_rotation, 0.030, at_border,
+                                     (0, 0))
