@@ -54,10 +54,13 @@ EDGE_PX = 10
 observed background (a tip in front of or behind the tape's own body is not located by
 that silhouette; 3 px refused 7 of 60 good sim fits whose estimated edge was a few px in)."""
 EDGE_RUN_PX = 3
-EDGE_RUN_FRACTION = 0.25
-"""... or a stretch of the tip edge from a corner, at least this fraction of its width, must
-lie within EDGE_RUN_PX of observed background: an end hooked over the tape's body shows
-part of its edge against the background (a notch's side), and that part locates it."""
+EDGE_RUN_FRACTION = 0.125
+EDGE_RUN_MIN_PX = 6.0
+"""... or a stretch of the tip edge from a corner, at least this fraction of its width and
+this long in the image [px], must lie within EDGE_RUN_PX of observed background: an end
+hooked over the tape's body shows part of its edge against the background (a notch's
+side), and that part locates it. (The wrong "ok" that made the rule above had the tip
+edge 8 px inside the silhouette an eighth of its width from the corner.)"""
 FOLD_DEG = 120.0
 """A free end that turns back by more than this [deg] from the tape's first plate is folded
 back towards the body; an "ok" fit of a fold gets the estimator's thorough second look,
@@ -336,7 +339,8 @@ def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], point
     if loose[k // 2] and (loose[0] or loose[-1]):
         return True
     run = int(np.ceil(EDGE_RUN_FRACTION * (k - 1))) + 1
-    return all(tight[:run]) or all(tight[k - run:])
+    long_enough = [np.linalg.norm(uv[a] - uv[b]) >= EDGE_RUN_MIN_PX for a, b in ((0, run - 1), (k - 1, k - run))]
+    return (all(tight[:run]) and long_enough[0]) or (all(tight[k - run:]) and long_enough[1])
 
 
 def _sliver_locates(view: View, observed: np.ndarray, model: np.ndarray, origin: tuple[int, int],
