@@ -206,12 +206,17 @@ def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: S
     return out
 
 
-def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray) -> float:
+def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
+                   trunk_px: np.ndarray | None = None) -> float:
     """The longest region [px] (its bounding box's longer side) of observed tape farther than
     UNEXPLAINED_MARGIN_PX from the model's silhouette that reaches within END_WINDOW_PX of
-    the tip's projection ``tip_px`` (crop coordinates): the tape going on past the model's
-    end. uint8 0/1 crops alike. (The reverse, model over background there, was measured
-    and dropped: an edge-on end is a thin line whose offset of a few pixels leaves 40-70 px
+    the tip's projection ``tip_px`` (crop coordinates). With ``trunk_px`` (the image
+    direction of the tape's last centimetre towards the tip), the farthest distance from the
+    tip of its pixels ahead of the tip along it: how far the tape goes on past the model's
+    end (a region beside the end, where a plate cuts across a curl of the body, does not
+    count for its length behind the tip).
+    uint8 0/1 crops alike. (The reverse, model over background there, was measured and
+    dropped: an edge-on end is a thin line whose offset of a few pixels leaves 40-70 px
     long slivers on good fits, and it caught no wrong fit.)"""
     if not np.all(np.isfinite(tip_px)):
         return 0.0
@@ -226,11 +231,22 @@ def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray) 
     if cv2.countNonZero(extra[a0:a1, b0:b1]) == 0:
         return 0.0
     _, labels, stats, _ = cv2.connectedComponentsWithStats(extra, connectivity=8)
+    along = None
+    if trunk_px is not None and np.all(np.isfinite(trunk_px)) and np.linalg.norm(trunk_px) >= SLIVER_MIN_TRUNK_PX:
+        along = np.asarray(trunk_px, float) / np.linalg.norm(trunk_px)
     best = 0.0
     for label in np.unique(labels[a0:a1, b0:b1]):
-        _, _, bw, bh, area = stats[label]
-        if label and area >= UNEXPLAINED_MIN_AREA_PX:
+        x, y, bw, bh, area = stats[label]
+        if not label or area < UNEXPLAINED_MIN_AREA_PX:
+            continue
+        if along is None:
             best = max(best, float(max(bw, bh)))
+            continue
+        ys, xs = np.nonzero(labels[y:y + bh, x:x + bw] == label)
+        d = np.column_stack([xs + x - tip_px[0], ys + y - tip_px[1]])
+        ahead = d[d @ along >= 0.0]
+        if len(ahead):
+            best = max(best, float(np.linalg.norm(ahead, axis=1).max()))
     return best
 
 
@@ -421,9 +437,14 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
             for s_, v, o, xy in zip(seen, views, observed, origins)]
     # A view that sees the end edge-on as a sliver does not locate it (it does not count
     # towards the two), but what it shows is still held against the model below.
-    # Observed tape near the tip that the model leaves unexplained, per view that sees the end.
-    extra = [unexplained_px(o, m, v.camera.project(tip_position[None])[0] - np.asarray(xy)) if s_ else 0.0
-             for s_, v, o, m, xy in zip(seen, views, observed, models, origins)]
+    # Observed tape near the tip that the model leaves unexplained, per view that sees the
+    # end: all of it, and what of it goes on past the tip.
+    extra, beyond = [], []
+    for s_, v, o, m, xy in zip(seen, views, observed, models, origins):
+        uv = v.camera.project(np.vstack([tip_position, tip_position - 0.010 * tip_rotation[:, 0]]))
+        tip_px = uv[0] - np.asarray(xy, float)
+        extra.append(unexplained_px(o, m, tip_px) if s_ else 0.0)
+        beyond.append(unexplained_px(o, m, tip_px, uv[0] - uv[1]) if s_ else 0.0)
     # A view locates the end where nothing near it is left unexplained, and, where it sees
     # the end edge-on as a sliver, where the sliver ends with the model.
     locates = [s_ and x <= LOCATE_UNEXPLAINED_PX
@@ -433,7 +454,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(locates), best_cost, tip_position, alternatives)
     if verdict is not Verdict.POOR_FIT:
-        for k, tape in enumerate(extra):
+        for k, tape in enumerate(beyond):
             if tape > UNEXPLAINED_PX:
                 verdict, reason = Verdict.POOR_FIT, (
                     f"view {k} {PAST_END} over {tape:.0f} px (> {UNEXPLAINED_PX} px)")

@@ -152,6 +152,15 @@ def test_unexplained_regions_near_the_tip():
     # Offsets within the margin (calibration error of a few pixels) are explained.
     shifted = np.roll(model, 2, axis=1)
     assert unexplained_px(shifted, model, np.array([100.0, 59.0])) == 0.0
+    # With the trunk's direction (+x, towards the tip): the sliver goes on 60 px past the
+    # tip; a band of tape beside the end, behind the tip (a plate cutting across a curl),
+    # is no tape past the end.
+    trunk = np.array([10.0, 0.0])
+    assert 55 <= unexplained_px(observed, model, np.array([100.0, 59.0]), trunk) <= 61
+    beside = model.copy()
+    beside[84:88, 40:101] = 1                     # 4 px below the model, ending at the tip
+    assert unexplained_px(beside, model, np.array([100.0, 79.0])) >= 55
+    assert unexplained_px(beside, model, np.array([100.0, 79.0]), trunk) <= 10
 
 
 def test_tape_past_the_models_end_is_never_ok():
