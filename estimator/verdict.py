@@ -9,13 +9,16 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   good fits whatever the view's size or thickness, where the area-normalised eq. 7 cost of
   an edge-on view is several times that of a face-on one. Above ``POOR_OFFSET_PX`` in any
   view: ``poor_fit``.
-- Do two cameras see the free end? The estimate's last ``TIP_SPAN_M`` of centre line and
-  its tip corners are projected into each view; a view sees the free end when at least
-  ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore mask and
-  in front of every scene box, and the end stands against the background there (the tip
-  edge within ``EDGE_PX`` of observed background: a tip over the tape's own body is not
-  located by that silhouette) and is not seen edge-on as a sliver (``THIN_END_PX``). Fewer
-  than two such views: ``hidden``.
+- Do two cameras locate the free end? The estimate's last ``TIP_SPAN_M`` of centre line
+  and its tip corners are projected into each view; a view locates the free end when at
+  least ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore
+  mask and in front of every scene box; the end stands against the background there (the
+  tip edge within ``EDGE_PX`` of observed background, or a stretch of it from a corner
+  within ``EDGE_RUN_PX``: a tip over the tape's own body is not located by that
+  silhouette); the tape's continuation past the tip would be seen, or background is seen
+  before the occluder; at most ``LOCATE_UNEXPLAINED_PX`` of observed tape near the tip is
+  unexplained; and, seen edge-on as a sliver (``THIN_END_PX``), the sliver ends with the
+  model (``SLIVER_END_PX``). Fewer than two such views: ``hidden``.
 - Can the end's depth be told? The cameras that see it must look at it from directions at
   least ``MIN_PARALLAX_DEG`` apart, else ``ambiguous``.
 - Does a distinct shape explain the views nearly as well? An alternative whose tip is more
@@ -435,8 +438,6 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
     seen = [s_ and _on_outline(v, o, xy, edge) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
             for s_, v, o, xy in zip(seen, views, observed, origins)]
-    # A view that sees the end edge-on as a sliver does not locate it (it does not count
-    # towards the two), but what it shows is still held against the model below.
     # Observed tape near the tip that the model leaves unexplained, per view that sees the
     # end: all of it, and what of it goes on past the tip.
     extra, beyond = [], []
@@ -445,8 +446,10 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
         tip_px = uv[0] - np.asarray(xy, float)
         extra.append(unexplained_px(o, m, tip_px) if s_ else 0.0)
         beyond.append(unexplained_px(o, m, tip_px, uv[0] - uv[1]) if s_ else 0.0)
-    # A view locates the end where nothing near it is left unexplained, and, where it sees
-    # the end edge-on as a sliver, where the sliver ends with the model.
+    # A view locates the end (counts towards the two) where nothing near it is left
+    # unexplained and, where it sees the end edge-on as a sliver, where the sliver ends with
+    # the model; a view that sees the end but does not locate it is still held against the
+    # model below.
     locates = [s_ and x <= LOCATE_UNEXPLAINED_PX
                and (not _thin_at(o, xy, v.camera.project(tip_position[None])[0])
                     or _sliver_locates(v, o, m, xy, tip_position, tip_rotation))
