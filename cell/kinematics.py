@@ -30,14 +30,38 @@ _D1, _D4, _D5, _D6 = DH_D[0], DH_D[3], DH_D[4], DH_D[5]
 _A2, _A3 = DH_A[1], DH_A[2]
 
 
+_COS_ALPHA, _SIN_ALPHA = np.cos(DH_ALPHA), np.sin(DH_ALPHA)
+
+
 def dh_frames(q: np.ndarray) -> np.ndarray:
-    """(7, 4, 4) world_from_frame_i for DH frames 0..6 at joints ``q`` (6,) [rad]."""
+    """(7, 4, 4) world_from_frame_i for DH frames 0..6 at joints ``q`` (6,) [rad].
+
+    The six joint transforms are filled in at once (the same products as :func:`_dh`, bit
+    for bit; building them one call per joint cost more than the simulated arm's physics
+    steps), then chained as before."""
+    q = np.asarray(q, float)
+    ct, st = np.cos(q[:6]), np.sin(q[:6])
+    ca, sa = _COS_ALPHA, _SIN_ALPHA
+    joint = np.zeros((6, 4, 4))          # frame_{i-1}_from_frame_i
+    joint[:, 0, 0] = ct
+    joint[:, 0, 1] = -st * ca
+    joint[:, 0, 2] = st * sa
+    joint[:, 0, 3] = DH_A * ct
+    joint[:, 1, 0] = st
+    joint[:, 1, 1] = ct * ca
+    joint[:, 1, 2] = -ct * sa
+    joint[:, 1, 3] = DH_A * st
+    joint[:, 2, 1] = sa
+    joint[:, 2, 2] = ca
+    joint[:, 2, 3] = DH_D
+    joint[:, 3, 3] = 1.0
+    out = np.empty((7, 4, 4))
     T = np.eye(4)
-    out = [T]
+    out[0] = T
     for i in range(6):
-        T = T @ _dh(q[i], i)
-        out.append(T)
-    return np.array(out)
+        T = T @ joint[i]
+        out[i + 1] = T
+    return out
 
 
 def fk(q: np.ndarray) -> np.ndarray:
