@@ -243,16 +243,26 @@ class SimCell:
         self.check_warnings()
         return i
 
-    def step(self, n: int = 1) -> None:
-        """Advance the simulation ``n`` steps; a MuJoCo warning (instability) is a SimError."""
+    def step(self, n: int = 1, sync: bool = True) -> None:
+        """Advance the simulation ``n`` steps; a MuJoCo warning (instability) is a SimError.
+
+        ``sync``: bring the world poses (``xpos``, ``xmat``, ``geom_xpos``, ``site_xpos``)
+        up to date with the new joints; a loop that reads only joints and velocities
+        between its steps passes False and calls :meth:`sync` once at its end (the physics
+        is the same either way: ``mj_step`` computes the poses it uses itself)."""
         m, d = self.model, self.data
         for _ in range(n):
             mujoco.mj_step(m, d)
-        # mj_step leaves positions of the previous step in xpos/xmat; bring them up to date.
-        mujoco.mj_kinematics(m, d)
+        if sync:
+            self.sync()
         self.check_warnings()
         if self.step_hook is not None:
             self.step_hook()
+
+    def sync(self) -> None:
+        """World poses from the current joints (``mj_kinematics``): ``mj_step`` leaves the
+        previous step's poses in ``xpos`` / ``xmat``."""
+        mujoco.mj_kinematics(self.model, self.data)
 
     def check_warnings(self) -> None:
         counts = self._warning_counts
