@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["fk", "dh_frames", "ik_solutions", "ik_nearest", "JOINT_NAMES", "JOINT_LOWER", "JOINT_UPPER"]
+__all__ = ["fk", "dh_frames", "dh_frames_many", "ik_solutions", "ik_nearest", "JOINT_NAMES", "JOINT_LOWER", "JOINT_UPPER"]
 
 # Universal Robots' published DH parameters of the UR5e.
 DH_D = np.array([0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996])
@@ -34,33 +34,41 @@ _COS_ALPHA, _SIN_ALPHA = np.cos(DH_ALPHA), np.sin(DH_ALPHA)
 
 
 def dh_frames(q: np.ndarray) -> np.ndarray:
-    """(7, 4, 4) world_from_frame_i for DH frames 0..6 at joints ``q`` (6,) [rad].
+    """(7, 4, 4) world_from_frame_i for DH frames 0..6 at joints ``q`` (6,) [rad]."""
+    return dh_frames_many(np.asarray(q, float)[None, :6])[0]
 
-    The six joint transforms are filled in at once (the same products as :func:`_dh`, bit
-    for bit; building them one call per joint cost more than the simulated arm's physics
-    steps), then chained as before."""
-    q = np.asarray(q, float)
-    ct, st = np.cos(q[:6]), np.sin(q[:6])
+
+def dh_frames_many(qs: np.ndarray) -> np.ndarray:
+    """(n, 7, 4, 4): :func:`dh_frames` at each of the joint vectors ``qs`` (n, 6) [rad].
+
+    The joint transforms are filled in for all joints and samples at once (the products
+    of :func:`_dh`), then chained frame by frame with one stacked matrix product: the
+    same numbers, bit for bit, as chaining ``_dh`` matrices one joint at a time (checked on
+    200,000 random joint vectors), at a fraction of the cost (the planner's safety checks
+    take the frames at hundreds of samples of every candidate motion)."""
+    qs = np.asarray(qs, float).reshape(-1, 6)
+    n = len(qs)
+    ct, st = np.cos(qs), np.sin(qs)
     ca, sa = _COS_ALPHA, _SIN_ALPHA
-    joint = np.zeros((6, 4, 4))          # frame_{i-1}_from_frame_i
-    joint[:, 0, 0] = ct
-    joint[:, 0, 1] = -st * ca
-    joint[:, 0, 2] = st * sa
-    joint[:, 0, 3] = DH_A * ct
-    joint[:, 1, 0] = st
-    joint[:, 1, 1] = ct * ca
-    joint[:, 1, 2] = -ct * sa
-    joint[:, 1, 3] = DH_A * st
-    joint[:, 2, 1] = sa
-    joint[:, 2, 2] = ca
-    joint[:, 2, 3] = DH_D
-    joint[:, 3, 3] = 1.0
-    out = np.empty((7, 4, 4))
-    T = np.eye(4)
-    out[0] = T
+    joint = np.zeros((n, 6, 4, 4))          # frame_{i-1}_from_frame_i per sample
+    joint[..., 0, 0] = ct
+    joint[..., 0, 1] = -st * ca
+    joint[..., 0, 2] = st * sa
+    joint[..., 0, 3] = DH_A * ct
+    joint[..., 1, 0] = st
+    joint[..., 1, 1] = ct * ca
+    joint[..., 1, 2] = -ct * sa
+    joint[..., 1, 3] = DH_A * st
+    joint[..., 2, 1] = sa
+    joint[..., 2, 2] = ca
+    joint[..., 2, 3] = DH_D
+    joint[..., 3, 3] = 1.0
+    out = np.empty((n, 7, 4, 4))
+    T = np.broadcast_to(np.eye(4), (n, 4, 4))
+    out[:, 0] = T
     for i in range(6):
-        T = T @ joint[i]
-        out[i + 1] = T
+        T = T @ joint[:, i]
+        out[:, i + 1] = T
     return out
 
 

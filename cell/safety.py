@@ -328,19 +328,46 @@ def check_wrist_clear(limits: SafetyLimits, joint_path: Any, motion: str,
     part; a few mm more cautious where both are clear."""
     if not limits.obstacles:
         return
+    qs = np.asarray(joint_path, float).reshape(-1, 6)
     if frames is None:
-        from .kinematics import dh_frames as frames
+        from .kinematics import dh_frames_many
+        all_frames = dh_frames_many(qs)
+    else:
+        all_frames = np.array([frames(q) for q in qs]).reshape(-1, 7, 4, 4)
+    _check_wrist_frames(limits, all_frames, motion)
+
+
+_PREFILTER_SLACK_M = 1e-9
+"""The vectorised bounding-sphere test skips a wrist link only when it is clear by this much
+more than the clearance, so rounding in the vectorised arithmetic cannot skip a link that
+the exact test (run for every other link) would not."""
+
+
+def _check_wrist_frames(limits: SafetyLimits, all_frames: np.ndarray, motion: str) -> None:
+    """:func:`check_wrist_clear` on the DH frames (n, 7, 4, 4) of the samples. A link whose
+    bounding sphere is clear of every box is clear: that is tested for all samples at once
+    first, and the rest (usually none) in order with the link's cylinder surface, exactly as
+    one sample at a time, so the same sample raises the same error."""
     r = WRIST_RADIUS_M
-    for q in np.asarray(joint_path, float).reshape(-1, 6):
-        F = frames(q)
-        for name, i, j, back in WRIST_LINKS:
-            a, b = F[i, :3, 3], F[j, :3, 3]
-            a = a - back * (b - a) / np.linalg.norm(b - a)
-            centre, reach = 0.5 * (a + b), 0.5 * float(np.linalg.norm(b - a)) + r
-            if all(ob.distance(centre) >= reach + limits.clearance for ob in limits.obstacles):
-                continue      # the link's bounding sphere is clear: so is the link
-            pts = _cylinder_surface(a, b, r)
-            _check_clear(limits, pts[None], np.zeros(len(pts)), [name] * len(pts), motion)
+    origins = all_frames[:, :, :3, 3]                                  # (n, 7, 3)
+    candidate = np.zeros((len(all_frames), len(WRIST_LINKS)), bool)
+    for k, (_, i, j, back) in enumerate(WRIST_LINKS):
+        a, b = origins[:, i], origins[:, j]
+        length = np.linalg.norm(b - a, axis=-1)
+        a = a - (back / length)[:, None] * (b - a)
+        centre, reach = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=-1) + r
+        for ob in limits.obstacles:
+            candidate[:, k] |= ob.distance(centre) < reach + limits.clearance + _PREFILTER_SLACK_M
+    for n, k in zip(*np.nonzero(candidate)):                         # sample-major, as before
+        name, i, j, back = WRIST_LINKS[k]
+        F = all_frames[n]
+        a, b = F[i, :3, 3], F[j, :3, 3]
+        a = a - back * (b - a) / np.linalg.norm(b - a)
+        centre, reach = 0.5 * (a + b), 0.5 * float(np.linalg.norm(b - a)) + r
+        if all(ob.distance(centre) >= reach + limits.clearance for ob in limits.obstacles):
+            continue      # the link's bounding sphere is clear: so is the link
+        pts = _cylinder_surface(a, b, r)
+        _check_clear(limits, pts[None], np.zeros(len(pts)), [name] * len(pts), motion)
 
 
 def check_linear_move(limits: SafetyLimits, start_pose: Any, target_pose: Any, speed: float,
@@ -405,16 +432,19 @@ def check_joint_move(limits: SafetyLimits, q_start: Any, q_target: Any, speed: f
     if not 0 < acceleration <= limits.max_joint_accel:
         raise SafetyError(f"joint move: acceleration {acceleration:g} rad/s^2 exceeds the limit "
                           f"{limits.max_joint_accel:g} rad/s^2")
-    if frames is None:
-        from .kinematics import dh_frames as frames
     pts = check_points_flange() if points_flange is None else np.asarray(points_flange, float)
     qa, qb = np.asarray(q_start, float), np.asarray(q_target, float)
     n = int(np.ceil(np.max(np.abs(qb - qa)) / 0.01)) + 2
     tool_paths, wrist_paths, flanges = [], [], []
     qs = qa + np.linspace(0.0, 1.0, n)[:, None] * (qb - qa)
-    for q in qs:
-        F = frames(q)
-        tool_paths.append((F[-1] @ np.c_[pts, np.ones(len(pts))].T).T[:, :3])
+    if frames is None:
+        from .kinematics import dh_frames_many
+        all_frames = dh_frames_many(qs)
+    else:
+        all_frames = np.array([frames(q) for q in qs]).reshape(-1, 7, 4, 4)
+    pts_h = np.c_[pts, np.ones(len(pts))].T
+    for F in all_frames:
+        tool_paths.append((F[-1] @ pts_h).T[:, :3])
         wrist_paths.append(F[4:6, :3, 3])
         flanges.append(F[-1])
     _check_box_path(limits, np.array(tool_paths), _point_labels(len(pts)), "joint move")
@@ -430,7 +460,7 @@ def check_joint_move(limits: SafetyLimits, q_start: Any, q_target: Any, speed: f
         # everything).
         _check_tool_clear(limits, np.array(flanges), shape if shape is not None else ToolShape.points(pts),
                           "joint move")
-        check_wrist_clear(limits, qs, "joint move", frames)
+        _check_wrist_frames(limits, all_frames, "joint move")
 
 
 class SafeArm(Arm):
