@@ -24,6 +24,8 @@ long as the gripper itself clears the table.
 """
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -59,6 +61,12 @@ SHAPE_STEP_M = 0.003
 one, so the clearance actually kept is at least ``clearance`` - 2 mm."""
 
 
+_PREFILTER_SLACK_M = 1e-9
+"""A vectorised bounding-sphere test skips a part or a wrist link only when it is clear by
+this much more than the clearance, so rounding in the vectorised arithmetic cannot skip one
+that the exact test would find too close."""
+
+
 @dataclass(frozen=True)
 class Obstacle:
     """A solid axis-aligned box of the cell [m] (world = base frame)."""
@@ -87,6 +95,20 @@ class ToolShape:
     def __post_init__(self) -> None:
         if self.part_index is None:
             object.__setattr__(self, "part_index", np.zeros(len(self.points_flange), int))
+
+    @functools.cached_property
+    def part_spheres(self) -> tuple[np.ndarray, np.ndarray]:
+        """(centres (P, 3) in the flange frame [m], radii (P,) [m]): per part, a sphere
+        around its points' spheres (a coarse test before the points' own)."""
+        centres, reaches = [], []
+        for k in range(len(self.parts)):
+            pts, rad = self.points_flange[self.part_index == k], self.radii[self.part_index == k]
+            if len(pts) == 0:
+                continue
+            c = pts.mean(axis=0)
+            centres.append(c)
+            reaches.append(float(np.max(np.linalg.norm(pts - c, axis=1) + rad)))
+        return np.array(centres).reshape(-1, 3), np.array(reaches)
 
     @classmethod
     def join(cls, *shapes: "ToolShape") -> "ToolShape":
@@ -241,8 +263,10 @@ def _check_box_path(limits: SafetyLimits, paths: np.ndarray, labels: list[str], 
     """paths: (n_samples, k, 3) world positions of k points along a motion."""
     lo, hi = limits.workspace_min, limits.workspace_max
     inside = _inside(paths, lo, hi)
-    hits = np.stack([segments_hit_box(paths[:-1, j], paths[1:, j], limits.keepout_min, limits.keepout_max)
-                     for j in range(paths.shape[1])], axis=1) if len(paths) > 1 else np.zeros((0, paths.shape[1]), bool)
+    # every point's segments in one call (elementwise: the same answers as point by point)
+    k = paths.shape[1]
+    hits = segments_hit_box(paths[:-1].reshape(-1, 3), paths[1:].reshape(-1, 3), limits.keepout_min,
+                            limits.keepout_max).reshape(-1, k) if len(paths) > 1 else np.zeros((0, k), bool)
     for j, label in enumerate(labels):
         if not inside[-1, j]:
             raise SafetyError(f"{motion}: the {label} target {_fmt(paths[-1, j])} m is outside the workspace box "
@@ -290,6 +314,19 @@ def _check_tool_clear(limits: SafetyLimits, world_from_flange: np.ndarray, shape
         near |= ob.distance(centres) < reach + limits.clearance
     if not np.any(near):
         return
+    # Of those, only the samples where some part's own bounding sphere comes that close
+    # (with _PREFILTER_SLACK_M to spare): a sample dropped here has no point within the
+    # clearance, so the points' test below sees the same offending points, if any.
+    part_centres, part_reach = shape.part_spheres
+    if len(part_centres) > 1:
+        R, t = world_from_flange[near, :3, :3], world_from_flange[near, None, :3, 3]
+        parts_world = np.einsum("nij,pj->npi", R, part_centres) + t               # (n_near, P, 3)
+        near_part = np.zeros(parts_world.shape[:2], bool)
+        for ob in limits.obstacles:
+            near_part |= ob.distance(parts_world) < part_reach + limits.clearance + _PREFILTER_SLACK_M
+        near[np.flatnonzero(near)[~near_part.any(axis=1)]] = False
+        if not np.any(near):
+            return
     T = world_from_flange[near]
     pts = np.einsum("nij,kj->nki", T[:, :3, :3], shape.points_flange) + T[:, None, :3, 3]
     _check_clear(limits, pts, shape.radii, [shape.parts[i] for i in shape.part_index], motion)
@@ -337,12 +374,6 @@ def check_wrist_clear(limits: SafetyLimits, joint_path: Any, motion: str,
     _check_wrist_frames(limits, all_frames, motion)
 
 
-_PREFILTER_SLACK_M = 1e-9
-"""The vectorised bounding-sphere test skips a wrist link only when it is clear by this much
-more than the clearance, so rounding in the vectorised arithmetic cannot skip a link that
-the exact test (run for every other link) would not."""
-
-
 def _check_wrist_frames(limits: SafetyLimits, all_frames: np.ndarray, motion: str) -> None:
     """:func:`check_wrist_clear` on the DH frames (n, 7, 4, 4) of the samples. A link whose
     bounding sphere is clear of every box is clear: that is tested for all samples at once
@@ -366,8 +397,23 @@ def _check_wrist_frames(limits: SafetyLimits, all_frames: np.ndarray, motion: st
         centre, reach = 0.5 * (a + b), 0.5 * float(np.linalg.norm(b - a)) + r
         if all(ob.distance(centre) >= reach + limits.clearance for ob in limits.obstacles):
             continue      # the link's bounding sphere is clear: so is the link
+        if _axis_clear(limits, a, b, r):
+            continue      # clear by the axis' samples: so is every point of its surface
         pts = _cylinder_surface(a, b, r)
         _check_clear(limits, pts[None], np.zeros(len(pts)), [name] * len(pts), motion)
+
+
+def _axis_clear(limits: SafetyLimits, a: np.ndarray, b: np.ndarray, radius: float, step: float = 0.01) -> bool:
+    """True when the cylinder of ``radius`` around a-b is surely clear of every obstacle by
+    the clearance (and _PREFILTER_SLACK_M): each of its surface points lies within
+    ``radius`` of the axis, and each axis point within half a sample spacing of a sample,
+    so a sample's distance less both bounds every surface point's (a lower bound; False
+    says only "test the surface")."""
+    length = float(np.linalg.norm(b - a))
+    m = max(int(np.ceil(length / step)), 1) + 1
+    samples = a + np.linspace(0.0, 1.0, m)[:, None] * (b - a)
+    margin = radius + 0.5 * length / (m - 1) + limits.clearance + _PREFILTER_SLACK_M
+    return all(float(np.min(ob.distance(samples))) >= margin for ob in limits.obstacles)
 
 
 def check_linear_move(limits: SafetyLimits, start_pose: Any, target_pose: Any, speed: float,
