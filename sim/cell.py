@@ -396,6 +396,24 @@ class SimCell:
         ignore = cv2.dilate(occluder.astype(np.uint8), kernel).astype(bool) & ~visible
         return visible, ignore
 
+    def _occluder_may_be_seen(self, cam: Camera, margin_px: float = 4.0) -> bool:
+        """False when no known occluder (arm, tools: every one, shown or not) can appear in
+        ``cam``'s image: each geom's bounding sphere (``geom_rbound`` about ``geom_xpos``)
+        lies wholly behind the camera or wholly outside one of the side planes of its view
+        (widened by ``margin_px``). True means only "render and see"."""
+        centres = self.data.geom_xpos[self._occluder_geoms] @ cam.R.T + cam.t   # camera frame [m]
+        radii = self.model.geom_rbound[self._occluder_geoms]
+        fx, fy = cam.K[0, 0], cam.K[1, 1]
+        cx, cy = cam.K[0, 2], cam.K[1, 2]
+        x, y, z = centres[:, 0], centres[:, 1], centres[:, 2]
+        out = z < -radii                                     # wholly behind the image plane
+        # side planes through the centre of projection, outward unit normals
+        for normal in ((fx, 0.0, -(cam.width - 0.5 - cx + margin_px)), (-fx, 0.0, -(cx + 0.5 + margin_px)),
+                       (0.0, fy, -(cam.height - 0.5 - cy + margin_px)), (0.0, -fy, -(cy + 0.5 + margin_px))):
+            n = np.asarray(normal) / np.linalg.norm(normal)
+            out |= n[0] * x + n[1] * y + n[2] * z > radii
+        return not bool(np.all(out))
+
     def capture(self, rgb: bool = False) -> Capture:
         """A capture of the current state: the estimator's tape model (``estimator_plates``
         plates) with the fixed base, one view per camera, and the ground truth.
@@ -407,7 +425,12 @@ class SimCell:
         views = []
         use_rgb = self.config.sim.mask_source == "rgb"
         for cam in self.cameras():
-            true_visible, ignore = self._masks(cam.name)
+            if use_rgb and not self._occluder_may_be_seen(cam):
+                # The segmentation render would show no arm or tool (the usual capture, the
+                # arm parked): no ignore mask, and the mask comes from the RGB image.
+                ignore = None
+            else:
+                true_visible, ignore = self._masks(cam.name)
             image = self.render_rgb(cam.name) if (use_rgb or rgb) else None
             mask = segment_tape(image, self.segmentation_params) if use_rgb else true_visible
             views.append(View(cam, mask, ignore, image if rgb else None))
