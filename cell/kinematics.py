@@ -34,23 +34,25 @@ _COS_ALPHA, _SIN_ALPHA = np.cos(DH_ALPHA), np.sin(DH_ALPHA)
 
 
 def dh_frames(q: np.ndarray) -> np.ndarray:
-    """(7, 4, 4) world_from_frame_i for DH frames 0..6 at joints ``q`` (6,) [rad]."""
-    return dh_frames_many(np.asarray(q, float)[None, :6])[0]
+    """(7, 4, 4) world_from_frame_i for DH frames 0..6 at joints ``q`` (6,) [rad]: the
+    single-sample case of :func:`dh_frames_many` (the same numbers, without the stacking)."""
+    joint = _joint_transforms(np.asarray(q, float)[None, :6])[0]
+    out = np.empty((7, 4, 4))
+    T = np.eye(4)
+    out[0] = T
+    for i in range(6):
+        T = T @ joint[i]
+        out[i + 1] = T
+    return out
 
 
-def dh_frames_many(qs: np.ndarray) -> np.ndarray:
-    """(n, 7, 4, 4): :func:`dh_frames` at each of the joint vectors ``qs`` (n, 6) [rad].
-
-    The joint transforms are filled in for all joints and samples at once (the products
-    of :func:`_dh`), then chained frame by frame with one stacked matrix product: the
-    same numbers, bit for bit, as chaining ``_dh`` matrices one joint at a time (checked on
-    200,000 random joint vectors), at a fraction of the cost (the planner's safety checks
-    take the frames at hundreds of samples of every candidate motion)."""
-    qs = np.asarray(qs, float).reshape(-1, 6)
+def _joint_transforms(qs: np.ndarray) -> np.ndarray:
+    """(n, 6, 4, 4) frame_{i-1}_from_frame_i of each joint at joints ``qs`` (n, 6): the
+    products of :func:`_dh`, for all joints and samples at once."""
     n = len(qs)
     ct, st = np.cos(qs), np.sin(qs)
     ca, sa = _COS_ALPHA, _SIN_ALPHA
-    joint = np.zeros((n, 6, 4, 4))          # frame_{i-1}_from_frame_i per sample
+    joint = np.zeros((n, 6, 4, 4))
     joint[..., 0, 0] = ct
     joint[..., 0, 1] = -st * ca
     joint[..., 0, 2] = st * sa
@@ -63,6 +65,20 @@ def dh_frames_many(qs: np.ndarray) -> np.ndarray:
     joint[..., 2, 2] = ca
     joint[..., 2, 3] = DH_D
     joint[..., 3, 3] = 1.0
+    return joint
+
+
+def dh_frames_many(qs: np.ndarray) -> np.ndarray:
+    """(n, 7, 4, 4): :func:`dh_frames` at each of the joint vectors ``qs`` (n, 6) [rad].
+
+    The joint transforms are filled in for all joints and samples at once (the products
+    of :func:`_dh`), then chained frame by frame with one stacked matrix product: the
+    same numbers, bit for bit, as chaining ``_dh`` matrices one joint at a time (checked on
+    200,000 random joint vectors), at a fraction of the cost (the planner's safety checks
+    take the frames at hundreds of samples of every candidate motion)."""
+    qs = np.asarray(qs, float).reshape(-1, 6)
+    n = len(qs)
+    joint = _joint_transforms(qs)
     out = np.empty((n, 7, 4, 4))
     T = np.broadcast_to(np.eye(4), (n, 4, 4))
     out[:, 0] = T
