@@ -95,11 +95,16 @@ def fk(q: np.ndarray) -> np.ndarray:
 
 def _dh(theta: float, i: int) -> np.ndarray:
     ct, st = np.cos(theta), np.sin(theta)
-    ca, sa = np.cos(DH_ALPHA[i]), np.sin(DH_ALPHA[i])
+    ca, sa = _COS_ALPHA[i], _SIN_ALPHA[i]
     return np.array([[ct, -st * ca, st * sa, DH_A[i] * ct],
                      [st, ct * ca, -ct * sa, DH_A[i] * st],
                      [0.0, sa, ca, DH_D[i]],
                      [0.0, 0.0, 0.0, 1.0]])
+
+
+def _clip_unit(x: float) -> float:
+    """``x`` clipped to [-1, 1] (np.clip's value, NaN passes, without its per-call cost)."""
+    return min(max(x, -1.0), 1.0)
 
 
 def _wrap(q: np.ndarray) -> np.ndarray:
@@ -122,26 +127,27 @@ def ik_solutions(world_from_flange: np.ndarray, tol_m: float = 1e-6, tol_rad: fl
         return np.zeros((0, 6))
     out = []
     phi = np.arctan2(p05[1], p05[0])
-    psi = np.arccos(np.clip(_D4 / r, -1.0, 1.0))
+    psi = np.arccos(_clip_unit(_D4 / r))
     for q1 in (phi + psi + np.pi / 2, phi - psi + np.pi / 2):
         s1, c1 = np.sin(q1), np.cos(q1)
         c5 = (T[0, 3] * s1 - T[1, 3] * c1 - _D4) / _D6
         if abs(c5) > 1.0 + 1e-9:
             continue
-        for q5 in (np.arccos(np.clip(c5, -1, 1)), -np.arccos(np.clip(c5, -1, 1))):
+        T1_inv_T = np.linalg.inv(_dh(q1, 0)) @ T      # the same for both wrists
+        for q5 in (np.arccos(_clip_unit(c5)), -np.arccos(_clip_unit(c5))):
             s5 = np.sin(q5)
             if abs(s5) < 1e-7:
                 continue
             # Frame 0's x and y axes seen from frame 6 are the rows of R06.
             q6 = np.arctan2((-T[0, 1] * s1 + T[1, 1] * c1) / s5, (T[0, 0] * s1 - T[1, 0] * c1) / s5)
-            T14 = np.linalg.inv(_dh(q1, 0)) @ T @ np.linalg.inv(_dh(q5, 4) @ _dh(q6, 5))
+            T14 = T1_inv_T @ np.linalg.inv(_dh(q5, 4) @ _dh(q6, 5))
             p13 = T14 @ np.array([0.0, -_D4, 0.0, 1.0])
             n13 = np.linalg.norm(p13[:3])
             c3 = (n13 ** 2 - _A2 ** 2 - _A3 ** 2) / (2 * _A2 * _A3)
             if abs(c3) > 1.0 + 1e-9:
                 continue
-            for q3 in (np.arccos(np.clip(c3, -1, 1)), -np.arccos(np.clip(c3, -1, 1))):
-                q2 = -np.arctan2(p13[1], -p13[0]) + np.arcsin(np.clip(_A3 * np.sin(q3) / n13, -1, 1))
+            for q3 in (np.arccos(_clip_unit(c3)), -np.arccos(_clip_unit(c3))):
+                q2 = -np.arctan2(p13[1], -p13[0]) + np.arcsin(_clip_unit(_A3 * np.sin(q3) / n13))
                 T34 = np.linalg.inv(_dh(q2, 1) @ _dh(q3, 2)) @ T14
                 q4 = np.arctan2(T34[1, 0], T34[0, 0])
                 q = _wrap(np.array([q1, q2, q3, q4, q5, q6]))
