@@ -24,6 +24,8 @@ long as the gripper itself clears the table.
 """
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -59,6 +61,12 @@ SHAPE_STEP_M = 0.003
 one, so the clearance actually kept is at least ``clearance`` - 2 mm."""
 
 
+_PREFILTER_SLACK_M = 1e-9
+"""A vectorised bounding-sphere test skips a part or a wrist link only when it is clear by
+this much more than the clearance, so rounding in the vectorised arithmetic cannot skip one
+that the exact test would find too close."""
+
+
 @dataclass(frozen=True)
 class Obstacle:
     """A solid axis-aligned box of the cell [m] (world = base frame)."""
@@ -87,6 +95,20 @@ class ToolShape:
     def __post_init__(self) -> None:
         if self.part_index is None:
             object.__setattr__(self, "part_index", np.zeros(len(self.points_flange), int))
+
+    @functools.cached_property
+    def part_spheres(self) -> tuple[np.ndarray, np.ndarray]:
+        """(centres (P, 3) in the flange frame [m], radii (P,) [m]): per part, a sphere
+        around its points' spheres (a coarse test before the points' own)."""
+        centres, reaches = [], []
+        for k in range(len(self.parts)):
+            pts, rad = self.points_flange[self.part_index == k], self.radii[self.part_index == k]
+            if len(pts) == 0:
+                continue
+            c = pts.mean(axis=0)
+            centres.append(c)
+            reaches.append(float(np.max(np.linalg.norm(pts - c, axis=1) + rad)))
+        return np.array(centres).reshape(-1, 3), np.array(reaches)
 
     @classmethod
     def join(cls, *shapes: "ToolShape") -> "ToolShape":
@@ -241,8 +263,10 @@ def _check_box_path(limits: SafetyLimits, paths: np.ndarray, labels: list[str], 
     """paths: (n_samples, k, 3) world positions of k points along a motion."""
     lo, hi = limits.workspace_min, limits.workspace_max
     inside = _inside(paths, lo, hi)
-    hits = np.stack([segments_hit_box(paths[:-1, j], paths[1:, j], limits.keepout_min, limits.keepout_max)
-                     for j in range(paths.shape[1])], axis=1) if len(paths) > 1 else np.zeros((0, paths.shape[1]), bool)
+    # every point's segments in one call (elementwise: the same answers as point by point)
+    k = paths.shape[1]
+    hits = segments_hit_box(paths[:-1].reshape(-1, 3), paths[1:].reshape(-1, 3), limits.keepout_min,
+                            limits.keepout_max).reshape(-1, k) if len(paths) > 1 else np.zeros((0, k), bool)
     for j, label in enumerate(labels):
         if not inside[-1, j]:
             raise SafetyError(f"{motion}: the {label} target {_fmt(paths[-1, j])} m is outside the workspace box "
@@ -290,6 +314,19 @@ def _check_tool_clear(limits: SafetyLimits, world_from_flange: np.ndarray, shape
         near |= ob.distance(centres) < reach + limits.clearance
     if not np.any(near):
         return
+    # Of those, only the samples where some part's own bounding sphere comes that close
+    # (with _PREFILTER_SLACK_M to spare): a sample dropped here has no point within the
+    # clearance, so the points' test below sees the same offending points, if any.
+    part_centres, part_reach = shape.part_spheres
+    if len(part_centres) > 1:
+        R, t = world_from_flange[near, :3, :3], world_from_flange[near, None, :3, 3]
+        parts_world = np.einsum("nij,pj->npi", R, part_centres) + t               # (n_near, P, 3)
+        near_part = np.zeros(parts_world.shape[:2], bool)
+        for ob in limits.obstacles:
+            near_part |= ob.distance(parts_world) < part_reach + limits.clearance + _PREFILTER_SLACK_M
+        near[np.flatnonzero(near)[~near_part.any(axis=1)]] = False
+        if not np.any(near):
+            return
     T = world_from_flange[near]
     pts = np.einsum("nij,kj->nki", T[:, :3, :3], shape.points_flange) + T[:, None, :3, 3]
     _check_clear(limits, pts, shape.radii, [shape.parts[i] for i in shape.part_index], motion)
@@ -328,19 +365,55 @@ def check_wrist_clear(limits: SafetyLimits, joint_path: Any, motion: str,
     part; a few mm more cautious where both are clear."""
     if not limits.obstacles:
         return
+    qs = np.asarray(joint_path, float).reshape(-1, 6)
     if frames is None:
-        from .kinematics import dh_frames as frames
+        from .kinematics import dh_frames_many
+        all_frames = dh_frames_many(qs)
+    else:
+        all_frames = np.array([frames(q) for q in qs]).reshape(-1, 7, 4, 4)
+    _check_wrist_frames(limits, all_frames, motion)
+
+
+def _check_wrist_frames(limits: SafetyLimits, all_frames: np.ndarray, motion: str) -> None:
+    """:func:`check_wrist_clear` on the DH frames (n, 7, 4, 4) of the samples. A link whose
+    bounding sphere is clear of every box is clear: that is tested for all samples at once
+    first, and the rest (usually none) in order with the link's cylinder surface, exactly as
+    one sample at a time, so the same sample raises the same error."""
     r = WRIST_RADIUS_M
-    for q in np.asarray(joint_path, float).reshape(-1, 6):
-        F = frames(q)
-        for name, i, j, back in WRIST_LINKS:
-            a, b = F[i, :3, 3], F[j, :3, 3]
-            a = a - back * (b - a) / np.linalg.norm(b - a)
-            centre, reach = 0.5 * (a + b), 0.5 * float(np.linalg.norm(b - a)) + r
-            if all(ob.distance(centre) >= reach + limits.clearance for ob in limits.obstacles):
-                continue      # the link's bounding sphere is clear: so is the link
-            pts = _cylinder_surface(a, b, r)
-            _check_clear(limits, pts[None], np.zeros(len(pts)), [name] * len(pts), motion)
+    origins = all_frames[:, :, :3, 3]                                  # (n, 7, 3)
+    candidate = np.zeros((len(all_frames), len(WRIST_LINKS)), bool)
+    for k, (_, i, j, back) in enumerate(WRIST_LINKS):
+        a, b = origins[:, i], origins[:, j]
+        length = np.linalg.norm(b - a, axis=-1)
+        a = a - (back / length)[:, None] * (b - a)
+        centre, reach = 0.5 * (a + b), 0.5 * np.linalg.norm(b - a, axis=-1) + r
+        for ob in limits.obstacles:
+            candidate[:, k] |= ob.distance(centre) < reach + limits.clearance + _PREFILTER_SLACK_M
+    for n, k in zip(*np.nonzero(candidate)):                         # sample-major, as before
+        name, i, j, back = WRIST_LINKS[k]
+        F = all_frames[n]
+        a, b = F[i, :3, 3], F[j, :3, 3]
+        a = a - back * (b - a) / np.linalg.norm(b - a)
+        centre, reach = 0.5 * (a + b), 0.5 * float(np.linalg.norm(b - a)) + r
+        if all(ob.distance(centre) >= reach + limits.clearance for ob in limits.obstacles):
+            continue      # the link's bounding sphere is clear: so is the link
+        if _axis_clear(limits, a, b, r):
+            continue      # clear by the axis' samples: so is every point of its surface
+        pts = _cylinder_surface(a, b, r)
+        _check_clear(limits, pts[None], np.zeros(len(pts)), [name] * len(pts), motion)
+
+
+def _axis_clear(limits: SafetyLimits, a: np.ndarray, b: np.ndarray, radius: float, step: float = 0.01) -> bool:
+    """True when the cylinder of ``radius`` around a-b is surely clear of every obstacle by
+    the clearance (and _PREFILTER_SLACK_M): each of its surface points lies within
+    ``radius`` of the axis, and each axis point within half a sample spacing of a sample,
+    so a sample's distance less both bounds every surface point's (a lower bound; False
+    says only "test the surface")."""
+    length = float(np.linalg.norm(b - a))
+    m = max(int(np.ceil(length / step)), 1) + 1
+    samples = a + np.linspace(0.0, 1.0, m)[:, None] * (b - a)
+    margin = radius + 0.5 * length / (m - 1) + limits.clearance + _PREFILTER_SLACK_M
+    return all(float(np.min(ob.distance(samples))) >= margin for ob in limits.obstacles)
 
 
 def check_linear_move(limits: SafetyLimits, start_pose: Any, target_pose: Any, speed: float,
@@ -405,16 +478,19 @@ def check_joint_move(limits: SafetyLimits, q_start: Any, q_target: Any, speed: f
     if not 0 < acceleration <= limits.max_joint_accel:
         raise SafetyError(f"joint move: acceleration {acceleration:g} rad/s^2 exceeds the limit "
                           f"{limits.max_joint_accel:g} rad/s^2")
-    if frames is None:
-        from .kinematics import dh_frames as frames
     pts = check_points_flange() if points_flange is None else np.asarray(points_flange, float)
     qa, qb = np.asarray(q_start, float), np.asarray(q_target, float)
     n = int(np.ceil(np.max(np.abs(qb - qa)) / 0.01)) + 2
     tool_paths, wrist_paths, flanges = [], [], []
     qs = qa + np.linspace(0.0, 1.0, n)[:, None] * (qb - qa)
-    for q in qs:
-        F = frames(q)
-        tool_paths.append((F[-1] @ np.c_[pts, np.ones(len(pts))].T).T[:, :3])
+    if frames is None:
+        from .kinematics import dh_frames_many
+        all_frames = dh_frames_many(qs)
+    else:
+        all_frames = np.array([frames(q) for q in qs]).reshape(-1, 7, 4, 4)
+    pts_h = np.c_[pts, np.ones(len(pts))].T
+    for F in all_frames:
+        tool_paths.append((F[-1] @ pts_h).T[:, :3])
         wrist_paths.append(F[4:6, :3, 3])
         flanges.append(F[-1])
     _check_box_path(limits, np.array(tool_paths), _point_labels(len(pts)), "joint move")
@@ -430,7 +506,7 @@ def check_joint_move(limits: SafetyLimits, q_start: Any, q_target: Any, speed: f
         # everything).
         _check_tool_clear(limits, np.array(flanges), shape if shape is not None else ToolShape.points(pts),
                           "joint move")
-        check_wrist_clear(limits, qs, "joint move", frames)
+        _check_wrist_frames(limits, all_frames, "joint move")
 
 
 class SafeArm(Arm):

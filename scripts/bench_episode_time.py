@@ -8,8 +8,10 @@ not counted: imports and loading the compiled kernels are a worker's start-up, n
 episode's) and prints per episode the stages the result records (capture, estimate,
 probe, plan, execute) and, measured by wrapping them, the time in MuJoCo's physics steps
 (mj_step), rendering (Renderer.render), the simulated arm's numerical IK and building the
-simulated cell (SimCell.__init__). The outcomes are printed too: a speed change must not
-change them.
+simulated cell (SimCell.__init__). The physics steps are split by what they simulated:
+steps with a contact (the pads on the tape: closing, the lift), steps with the tape awake
+and untouched, and steps with the tape asleep (``SimCell.set_tape_sleep``). The outcomes
+are printed too: a speed change must not change them.
 """
 from __future__ import annotations
 
@@ -43,6 +45,26 @@ def timed(name, fn):
     return wrapper
 
 
+PHYSICS = "physics (mj_step)"
+PHYSICS_KINDS = ("  with contacts", "  tape awake", "  tape asleep")
+
+
+def physics_timed(step):
+    """mj_step, timed as a whole and by what it simulated (read after the step)."""
+    def wrapper(m, d, *a):
+        t0 = time.perf_counter()
+        try:
+            return step(m, d, *a)
+        finally:
+            dt = time.perf_counter() - t0
+            asleep = d.ntree_awake < m.ntree
+            kind = PHYSICS_KINDS[0] if d.ncon else PHYSICS_KINDS[2] if asleep else PHYSICS_KINDS[1]
+            for k in (PHYSICS, kind):
+                spent[k] += dt
+                counts[k] += 1
+    return wrapper
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seed", type=int, default=0)
@@ -51,7 +73,7 @@ def main() -> int:
     ap.add_argument("--no-reuse", action="store_true", help="build a new simulated cell for every episode")
     args = ap.parse_args()
     episode.REUSE_CELL = not args.no_reuse
-    mujoco.mj_step = timed("physics (mj_step)", mujoco.mj_step)
+    mujoco.mj_step = physics_timed(mujoco.mj_step)
     mujoco.Renderer.render = timed("rendering", mujoco.Renderer.render)
     sim_arm.ik = timed("arm IK", sim_arm.ik)
     sim_cell.SimCell.__init__ = timed("cell build", sim_cell.SimCell.__init__)
@@ -75,9 +97,11 @@ def main() -> int:
     print(f"{'stage':<12} {'episodes':>8} {'mean s':>7} {'median s':>8} {'share':>6}")
     for k, v in stages.items():
         print(f"{k:<12} {len(v):>8} {np.mean(v):>7.3f} {np.median(v):>8.3f} {100 * sum(v) / total:>5.1f}%")
-    print(f"{'inside':<20} {'calls/ep':>9} {'s/ep':>7} {'share':>6}")
-    for k, v in sorted(spent.items(), key=lambda kv: -kv[1]):
-        print(f"{k:<20} {counts[k] / args.n:>9.0f} {v / args.n:>7.3f} {100 * v / total:>5.1f}%")
+    print(f"{'inside':<24} {'calls/ep':>9} {'s/ep':>7} {'share':>6}")
+    rest = sorted((k for k in spent if k != PHYSICS and k not in PHYSICS_KINDS), key=lambda k: -spent[k])
+    for k in [PHYSICS, *PHYSICS_KINDS, *rest]:
+        v = spent.get(k, 0.0)
+        print(f"{k:<24} {counts.get(k, 0) / args.n:>9.0f} {v / args.n:>7.3f} {100 * v / total:>5.1f}%")
     return 0
 
 

@@ -112,7 +112,7 @@ class SimArm:
         n = max(1, int(np.ceil(np.abs(q - q0).max() / speed / dt)))
         for i in range(1, n + 1):
             self._command(q0 + (q - q0) * (i / n))
-            self.cell.step(1)
+            self.cell.step(1, sync=False)
         return self._wait(q, settle_s)
 
     def move_tcp(self, pose, speed: float = 0.1, tool: str | None = None, settle_s: float = 1.0) -> np.ndarray:
@@ -139,7 +139,7 @@ class SimArm:
             q_next = q_goal if k == n_way else self.ik(T, tool, q_prev)
             for i in range(1, _WAYPOINT_STEPS + 1):
                 self._command(q_prev + (q_next - q_prev) * (i / _WAYPOINT_STEPS))
-                self.cell.step(1)
+                self.cell.step(1, sync=False)
             q_prev = q_next
         return self._wait(q_goal, settle_s)
 
@@ -187,7 +187,7 @@ class SimArm:
         n = max(1, int(np.ceil(np.max(start - closed) / (speed / 2) / dt)))
         for i in range(1, n + 1):
             ctrl[fingers] = start + (closed - start) * (i / n)
-            self.cell.step(1)
+            self.cell.step(1, sync=False)
         return self._move_fingers(closed, settle_s)
 
     # ----------------------------------------------------------------- helpers
@@ -207,8 +207,10 @@ class SimArm:
             still = np.abs(d.qvel[self.cell.arm_dofs]).max() < 0.01
             still_steps = still_steps + 1 if still else 0
             if still and (err < tol or (err < 10 * tol and still_steps * dt >= 0.1)):
+                self.cell.sync()
                 return self.joints()
-            self.cell.step(1)
+            self.cell.step(1, sync=False)
+        self.cell.sync()
         err = np.abs(d.qpos[self.cell.arm_qadr] - q).max()
         raise TargetNotReached(f"the simulated arm did not reach its target (joint error {err:.4f} rad after {settle_s} s)")
 
@@ -218,11 +220,12 @@ class SimArm:
         n = int(round(settle_s / self.cell.model.opt.timestep))
         prev = d.qpos[self.cell.finger_qadr].copy()
         for i in range(n):
-            self.cell.step(1)
+            self.cell.step(1, sync=False)
             q = d.qpos[self.cell.finger_qadr]
             if i > 50 and np.abs(q - prev).max() < 1e-7:
                 break
             prev = q.copy()
+        self.cell.sync()
         return self.gripper_opening()
 
 

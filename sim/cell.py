@@ -110,6 +110,8 @@ class SimCell:
         self.timing = CaptureTiming(0.0, 0.0)
         # Called after every step() (e.g. to record the arm while it moves); None: nothing.
         self.step_hook: Callable[[], None] | None = None
+        # Let the settled tape sleep while nothing touches it (set_tape_sleep); off as built.
+        self.tape_sleep = False
         # What an episode may change in the compiled model (tools, springs, lights), as
         # built: reuse() puts it back.
         self._as_built = {"geom_contype": m.geom_contype.copy(), "qpos_spring": m.qpos_spring.copy(),
@@ -133,6 +135,7 @@ class SimCell:
         self._option.geomgroup[:] = b["geomgroup"]
         self.mount_tool(self._tool_as_built)
         self.step_hook = None
+        self.tape_sleep = False
         self.timing = CaptureTiming(0.0, 0.0)
         return self.reset(seed)
 
@@ -183,10 +186,34 @@ class SimCell:
         open_half = self.config.tools.gripper.max_opening / 2
         d.qpos[self.finger_qadr] = open_half
         d.ctrl[self.finger_actuators] = open_half
+        self._sleep_flag(False)        # settling is simulated in full, as always
         mujoco.mj_forward(m, d)
         self.settle()
+        self._sleep_flag(self.tape_sleep)
         self.timing = CaptureTiming(time.perf_counter() - t0, self.timing.render_s)
         return self.rest
+
+    def set_tape_sleep(self, enabled: bool) -> None:
+        """Let the tape sleep (MuJoCo's island sleeping, ``mjENBL_SLEEP``) while nothing
+        touches it, from now on and after every :meth:`reset`'s settling (never during it).
+
+        Only the pads can touch the tape (``scene``): the arm's tree never sleeps (it is
+        actuated), and the settled tape falls asleep once its hinges stay slower than
+        ``opt.sleep_tolerance`` for a few steps. A sleeping tape is not stepped (its pose is
+        kept, its velocities are zero): a physics step costs ~13 us instead of ~85 us. A pad
+        contact (within the tape's contact margin) wakes it in that step, and while the
+        pads hold it the tape is in the arm's island, awake and simulated as before. What
+        differs from an always-awake tape is the settled tape's residual creep while it
+        sleeps (about 13 um at the tip in 5 s on seed 1). Off by default."""
+        self.tape_sleep = bool(enabled)
+        self._sleep_flag(self.tape_sleep)
+
+    def _sleep_flag(self, on: bool) -> None:
+        bit = int(mujoco.mjtEnableBit.mjENBL_SLEEP)
+        if on:
+            self.model.opt.enableflags |= bit
+        else:
+            self.model.opt.enableflags &= ~bit
 
     def settle(self) -> int:
         """Let the tape come to rest under gravity; returns the steps taken.
@@ -216,16 +243,26 @@ class SimCell:
         self.check_warnings()
         return i
 
-    def step(self, n: int = 1) -> None:
-        """Advance the simulation ``n`` steps; a MuJoCo warning (instability) is a SimError."""
+    def step(self, n: int = 1, sync: bool = True) -> None:
+        """Advance the simulation ``n`` steps; a MuJoCo warning (instability) is a SimError.
+
+        ``sync``: bring the world poses (``xpos``, ``xmat``, ``geom_xpos``, ``site_xpos``)
+        up to date with the new joints; a loop that reads only joints and velocities
+        between its steps passes False and calls :meth:`sync` once at its end (the physics
+        is the same either way: ``mj_step`` computes the poses it uses itself)."""
         m, d = self.model, self.data
         for _ in range(n):
             mujoco.mj_step(m, d)
-        # mj_step leaves positions of the previous step in xpos/xmat; bring them up to date.
-        mujoco.mj_kinematics(m, d)
+        if sync:
+            self.sync()
         self.check_warnings()
         if self.step_hook is not None:
             self.step_hook()
+
+    def sync(self) -> None:
+        """World poses from the current joints (``mj_kinematics``): ``mj_step`` leaves the
+        previous step's poses in ``xpos`` / ``xmat``."""
+        mujoco.mj_kinematics(self.model, self.data)
 
     def check_warnings(self) -> None:
         counts = self._warning_counts
@@ -359,6 +396,24 @@ class SimCell:
         ignore = cv2.dilate(occluder.astype(np.uint8), kernel).astype(bool) & ~visible
         return visible, ignore
 
+    def _occluder_may_be_seen(self, cam: Camera, margin_px: float = 4.0) -> bool:
+        """False when no known occluder (arm, tools: every one, shown or not) can appear in
+        ``cam``'s image: each geom's bounding sphere (``geom_rbound`` about ``geom_xpos``)
+        lies wholly behind the camera or wholly outside one of the side planes of its view
+        (widened by ``margin_px``). True means only "render and see"."""
+        centres = self.data.geom_xpos[self._occluder_geoms] @ cam.R.T + cam.t   # camera frame [m]
+        radii = self.model.geom_rbound[self._occluder_geoms]
+        fx, fy = cam.K[0, 0], cam.K[1, 1]
+        cx, cy = cam.K[0, 2], cam.K[1, 2]
+        x, y, z = centres[:, 0], centres[:, 1], centres[:, 2]
+        out = z < -radii                                     # wholly behind the image plane
+        # side planes through the centre of projection, outward unit normals
+        for normal in ((fx, 0.0, -(cam.width - 0.5 - cx + margin_px)), (-fx, 0.0, -(cx + 0.5 + margin_px)),
+                       (0.0, fy, -(cam.height - 0.5 - cy + margin_px)), (0.0, -fy, -(cy + 0.5 + margin_px))):
+            n = np.asarray(normal) / np.linalg.norm(normal)
+            out |= n[0] * x + n[1] * y + n[2] * z > radii
+        return not bool(np.all(out))
+
     def capture(self, rgb: bool = False) -> Capture:
         """A capture of the current state: the estimator's tape model (``estimator_plates``
         plates) with the fixed base, one view per camera, and the ground truth.
@@ -370,7 +425,12 @@ class SimCell:
         views = []
         use_rgb = self.config.sim.mask_source == "rgb"
         for cam in self.cameras():
-            true_visible, ignore = self._masks(cam.name)
+            if use_rgb and not self._occluder_may_be_seen(cam):
+                # The segmentation render would show no arm or tool (the usual capture, the
+                # arm parked): no ignore mask, and the mask comes from the RGB image.
+                ignore = None
+            else:
+                true_visible, ignore = self._masks(cam.name)
             image = self.render_rgb(cam.name) if (use_rgb or rgb) else None
             mask = segment_tape(image, self.segmentation_params) if use_rgb else true_visible
             views.append(View(cam, mask, ignore, image if rgb else None))

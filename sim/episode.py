@@ -124,6 +124,11 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             story.add("estimate", float(cell.data.time), (capture, est))
             times["estimate"] += est.time_s
             doc["recaptured"] = True
+        # From here on (the views are taken) the settled tape sleeps, is not stepped, until
+        # a pad touches it: every contact, the grasp and the lift are simulated as before
+        # (SimCell.set_tape_sleep). Not earlier: the tape still creeps by some micrometres
+        # after settling, and the captures see it as they always did.
+        cell.set_tape_sleep(True)
         if est.verdict is Verdict.HIDDEN or (est.verdict is Verdict.AMBIGUOUS and est.alternatives):
             # Two shapes explain the views, or too few cameras see the end: the needle,
             # which the cell carries for this, touches each hypothesis' tip (and goes past

@@ -287,10 +287,20 @@ def _run_in_processes(job_list: list[EpisodeJob], jobs: int,
             running: dict[Any, EpisodeJob] = {}
             broken: list[EpisodeJob] = []
             while (queue or running) and not broken:
+                pool_broke = False
                 while queue and len(running) < jobs:
                     job = queue.popleft()
-                    running[pool.submit(worker, job)] = job
-                done, _ = wait(list(running), return_when=FIRST_COMPLETED)
+                    try:
+                        running[pool.submit(worker, job)] = job
+                    except BrokenProcessPool:
+                        # a worker died since the last wait: this job never started
+                        queue.appendleft(job)
+                        pool_broke = True
+                        break
+                if pool_broke and not running:
+                    break                                  # nothing lost: a new pool runs the queue
+                # after a break every future in flight is done (a result or the break)
+                done, _ = wait(list(running), return_when="ALL_COMPLETED" if pool_broke else FIRST_COMPLETED)
                 for fut in done:
                     job = running.pop(fut)
                     try:

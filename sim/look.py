@@ -84,6 +84,7 @@ class MotionSampler:
 
     def take(self, event: str | None = None) -> None:
         d = self.cell.data
+        self.cell.sync()      # a step may have left the poses of the step before
         self._last = float(d.time)
         T = np.zeros((len(self._ids), 4, 4))
         T[:, :3, :3] = d.xmat[self._ids].reshape(-1, 3, 3)

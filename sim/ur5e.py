@@ -110,9 +110,11 @@ def ik(base_from_target: np.ndarray, q_seed: np.ndarray, flange_from_tcp: np.nda
                   f"{np.degrees(best.rotation_error_rad):.2f} deg)")
 
 
+_DAMPING = 1e-3 * np.eye(6)   # damped least squares: lambda I
+
+
 def _dls(target, q, flange_from_tcp, lower, upper, tol_m, tol_rad, max_iter) -> IKResult:
     q = q.copy()
-    lam = 1e-3
     for it in range(max_iter):
         T, J = jacobian(q, flange_from_tcp)
         e = pose_error(target, T)
@@ -120,7 +122,7 @@ def _dls(target, q, flange_from_tcp, lower, upper, tol_m, tol_rad, max_iter) -> 
         if ep <= tol_m and er <= tol_rad:
             return IKResult(q, ep, er, it)
         # Limit the step so the linearisation holds far from the target.
-        step = J.T @ np.linalg.solve(J @ J.T + lam * np.eye(6), e)
+        step = J.T @ np.linalg.solve(J @ J.T + _DAMPING, e)
         n = np.linalg.norm(step)
         if n > 0.5:
             step *= 0.5 / n

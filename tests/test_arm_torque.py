@@ -33,9 +33,9 @@ def _stretch_out(payload_kg: float) -> tuple[np.ndarray, str | None]:
         peak = np.zeros(6)
         step = cell.step
 
-        def recording_step(n: int = 1) -> None:
+        def recording_step(n: int = 1, sync: bool = True) -> None:
             for _ in range(n):
-                step(1)
+                step(1, sync=sync)
                 np.maximum(peak, np.abs(d.qfrc_actuator[cell.arm_dofs]), out=peak)
         cell.step = recording_step
         try:
