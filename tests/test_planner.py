@@ -159,7 +159,7 @@ def test_refuses_when_the_fingers_would_hit_the_tape():
     w = tip.rotation[:, 1]
     sheet = (tip.position + a.reshape(-1, 1) * tip.trunk + b.reshape(-1, 1) * w + 0.0205 * tip.normal)
     with pytest.raises(PlanRefused) as e:
-        plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=np.vstack([nodes, sheet]))
+        plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, tape_surface=sheet)
     assert e.value.reason == "collision" and "finger" in str(e.value)
     plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes)  # the straight tape is fine
 
@@ -231,6 +231,13 @@ def test_a_low_hanging_tip_is_reached_where_the_gripper_clears_the_table_and_the
     angles[0, 1] = angles[3, 1] = -np.pi / 2
     tip, nodes = tape(angles)
     assert tip.position[2] == pytest.approx(0.0405, abs=1e-3) and tip.trunk[2] < -0.99
+    # 30 mm from the part's face, the jaw's near finger (its pad and 6 mm of finger behind
+    # it, 28 mm from the jaw's centre) would come 2 mm from the part: refused.
+    with pytest.raises(PlanRefused, match="part"):
+        plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
+    angles[3, 1] = -np.radians(80.0)                # hanging 10 deg outwards: 40 mm from the face
+    tip, nodes = tape(angles)
+    assert tip.position[2] == pytest.approx(0.0414, abs=1e-3) and tip.trunk[2] < -0.98
     with pytest.raises(PlanRefused):
         plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, q_start=REFERENCE_JOINTS)
     plan = plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
