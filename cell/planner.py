@@ -16,7 +16,10 @@ along the normal is impossible, a finger would have to pass through the tape. Wh
 straight approach is blocked (the tip points down, the part is in the way, or the arm
 cannot reach it) the approach is tilted about the normal, up to 90 deg (from the side,
 across the width), and the jaw may be turned half a turn about its own axis (the gripper
-is symmetric); the least tilted feasible variant wins.
+is symmetric); the least tilted feasible variant wins. Only where all of these fail (an
+end hanging a little outside the part's face, where the open jaw's near finger would be
+inside the part) does the jaw come from the tape's body side (tilts past 90 deg), and then
+take the tape further back along the estimated end (:data:`EXTRA_INSETS_M`).
 
 Plan: open; joint move to ``pregrasp`` (``pregrasp_distance`` back along the approach, clear
 of the tape; through ``above``, 150 mm over it, when the direct joint move would sweep the
