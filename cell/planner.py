@@ -322,6 +322,7 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
         tape_base = np.asarray(tape_points, float)[0]
     surface = None if tape_surface is None else np.asarray(tape_surface, float).reshape(-1, 3)
     speeds = Speeds() if speeds is None else speeds
+    solid = (gripper.check_points_flange(), gripper.shape())     # the same for every variant
     refusals: list[PlanRefused] = []
     primary = 0        # how many refusals are of the first set (the cell file's inset, up to the side)
     for inset in (params.inset, *(params.inset + d for d in EXTRA_INSETS_M)):
@@ -334,7 +335,8 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
                         try:
                             return _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper,
                                                  limits, ik, q_ref, q_start is not None, tape, pitch,
-                                                 grasp_rotation=grasp_rotation, surface=surface, speeds=speeds)
+                                                 grasp_rotation=grasp_rotation, surface=surface, speeds=speeds,
+                                                 precheck=primary > 0, solid=solid)
                         except PlanRefused as e:
                             refusals.append(e)
     # The most telling refusal of the first set of variants (the fallbacks are for the odd
@@ -454,7 +456,12 @@ def tcp_rotation(tip: TipFrame, tilt: float, flipped: bool, pitch: float = 0.0) 
 
 
 def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper, limits, ik, q_ref,
-                  check_joint_path, tape, pitch=0.0, grasp_rotation=None, surface=None, speeds=None) -> GraspPlan:
+                  check_joint_path, tape, pitch=0.0, grasp_rotation=None, surface=None, speeds=None,
+                  precheck=False, solid=None) -> GraspPlan:
+    """The plan of one approach variant, or :class:`PlanRefused` with the first check it
+    fails. ``precheck``: first the cheap checks (each waypoint's pose where it stands, the
+    arm's reach at the grasp), then the motions: the same answer, sooner for the many
+    fallback variants that fail (a refusal's reason may then be another of its failures)."""
     speeds = Speeds() if speeds is None else speeds
     at_grasp = tip if grasp_rotation is None else TipFrame(grasp_position, grasp_rotation, tip.cost)
     R = tcp_rotation(at_grasp, tilt, flipped, pitch)
@@ -467,8 +474,17 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
     names = list(world_from_tcp)
     tcp_from_flange = invert(gripper.flange_from_tcp)
     flange = {k: matrix_to_pose6(T @ tcp_from_flange) for k, T in world_from_tcp.items()}
-    points = gripper.check_points_flange()
-    shape = gripper.shape()
+    points, shape = solid if solid is not None else (gripper.check_points_flange(), gripper.shape())
+    if precheck:
+        try:
+            for name in ("grasp", "pregrasp", names[-1]):
+                check_linear_move(limits, flange[name], flange[name], limits.max_tcp_speed, limits.max_tcp_accel,
+                                  points, shape)
+        except SafetyError as e:
+            raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits", str(e)) from None
+        if ik is ik_nearest and ik(pose6_to_matrix(flange["grasp"]), q_ref) is None:   # None: no solution at all
+            raise PlanRefused("unreachable", f"no joint solution puts the gripper at the grasp pose "
+                                             f"(TCP at {_mm(grasp_position)} mm)")
     try:
         check_linear_move(limits, flange["pregrasp"], flange["pregrasp"], limits.max_tcp_speed,
                           limits.max_tcp_accel, points, shape)
@@ -680,16 +696,18 @@ def _check_fingers_clear(tape: np.ndarray, start: np.ndarray, end: np.ndarray, g
     approach from ``start`` to ``end`` (world_from_tcp)."""
     boxes = gripper.finger_boxes_tcp()
     n = int(np.ceil(np.linalg.norm(end[:3, 3] - start[:3, 3]) / 0.002)) + 1
-    for s in np.linspace(0.0, 1.0, n + 1):
-        T = start.copy()
-        T[:3, 3] = start[:3, 3] + s * (end[:3, 3] - start[:3, 3])
-        local = (tape - T[:3, 3]) @ T[:3, :3]
-        for i, (lo, hi) in enumerate(boxes):
-            inside = np.all((local > lo) & (local < hi), axis=1)
-            if np.any(inside):
-                part = "palm" if i == 2 else "finger"
-                raise PlanRefused("collision", f"the open gripper's {part} would hit the tape near "
-                                               f"{_mm(tape[np.argmax(inside)])} mm on the approach")
+    # The approach only translates: the tape in the TCP frame at every sample at once.
+    local0 = (tape - start[:3, 3]) @ start[:3, :3]                             # (M, 3)
+    shift = np.linspace(0.0, 1.0, n + 1)[:, None] * ((end[:3, 3] - start[:3, 3]) @ start[:3, :3])
+    local = local0[None] - shift[:, None]                                     # (n + 1, M, 3)
+    inside = np.stack([np.all((local > lo) & (local < hi), axis=2) for lo, hi in boxes])   # (boxes, n + 1, M)
+    if np.any(inside):
+        hit = inside.any(axis=2)                                              # (boxes, n + 1)
+        first = int(np.argmax(hit.any(axis=0)))                               # the earliest sample
+        i = int(np.argmax(hit[:, first]))
+        part = "palm" if i == 2 else "finger"
+        raise PlanRefused("collision", f"the open gripper's {part} would hit the tape near "
+                                       f"{_mm(tape[np.argmax(inside[i, first])])} mm on the approach")
 
 
 def _densify(points: np.ndarray, step: float) -> np.ndarray:
