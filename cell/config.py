@@ -164,7 +164,9 @@ class NeedleTool:
 class GripperTool:
     """Parallel gripper; the TCP is midway between the pads, which close along the TCP's y.
     max_opening m; pad_size m (along x, thickness y, depth z); finger_kp N/m; max_force N;
-    close_speed m/s: how fast the pad distance shrinks when closing (simulated arm)."""
+    close_speed m/s: how fast the pad distance shrinks when closing (simulated arm);
+    finger_thickness m: each finger's thickness behind its pad (along y), which the
+    collision check and the simulated gripper both use."""
     flange_from_tcp: Pose6
     max_opening: float
     pad_size: Vec3
@@ -172,6 +174,7 @@ class GripperTool:
     max_force: float
     friction: float
     close_speed: float = 0.1
+    finger_thickness: float = 0.006
 
 
 @dataclass(frozen=True)
@@ -436,6 +439,7 @@ def _check(cfg: CellConfig) -> None:
     need(cfg.calibration.distortion_model in ("none", "k1", "k1k2", "k1k2p1p2", "k1k2p1p2k3"),
          "'calibration.distortion_model' must be none, k1, k1k2, k1k2p1p2 or k1k2p1p2k3")
     need(cfg.tools.gripper.close_speed > 0, "'tools.gripper.close_speed' must be positive")
+    need(cfg.tools.gripper.finger_thickness > 0, "'tools.gripper.finger_thickness' must be positive")
     need(cfg.grasp.lift_mode in ("arc", "peel"), "'grasp.lift_mode' must be \"arc\" or \"peel\"")
     need(all(a < b for a, b in zip(cfg.limits.workspace_min, cfg.limits.workspace_max)),
          "'limits.workspace_min' must be below 'limits.workspace_max' on every axis")

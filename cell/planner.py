@@ -16,7 +16,10 @@ along the normal is impossible, a finger would have to pass through the tape. Wh
 straight approach is blocked (the tip points down, the part is in the way, or the arm
 cannot reach it) the approach is tilted about the normal, up to 90 deg (from the side,
 across the width), and the jaw may be turned half a turn about its own axis (the gripper
-is symmetric); the least tilted feasible variant wins.
+is symmetric); the least tilted feasible variant wins. Only where all of these fail (an
+end hanging a little outside the part's face, where the open jaw's near finger would be
+inside the part) does the jaw come from the tape's body side (tilts past 90 deg), and then
+take the tape further back along the estimated end (:data:`EXTRA_INSETS_M`).
 
 Plan: open; joint move to ``pregrasp`` (``pregrasp_distance`` back along the approach, clear
 of the tape; through ``above``, 150 mm over it, when the direct joint move would sweep the
@@ -70,6 +73,20 @@ APPROACH_TILTS_RAD = tuple(np.radians(a) for a in (0.0, 20.0, -20.0, 40.0, -40.0
 # tilt at the pitch before failed: the jaw then closes at this angle to the tape's faces
 # (the 40 mm gap still straddles a 0.2 mm tape; the floppy tape turns into the pads).
 APPROACH_PITCHES_RAD = tuple(np.radians(a) for a in (0.0, 25.0, -25.0))
+# Tilts past the side, tried after all of the above: the jaw comes from the tape's body
+# side, fingers first along the tape towards its end (from above an end that hangs down
+# beside the part, where a jaw from the side or from beyond the tip would put a finger
+# between the tape and the part's face). The tape's body then lies between the open
+# fingers, which the check against the estimated tape covers.
+BODY_SIDE_TILTS_RAD = tuple(np.radians(a) for a in (120.0, -120.0, 150.0, -150.0, 180.0))
+# Where every approach at the cell file's inset is refused, the grasp point moves further
+# back along the estimated end by these amounts [m] (the jaw then holds the tape higher
+# up a hanging end, away from the part's face below it), up to one plate of the model.
+EXTRA_INSETS_M = (0.006, 0.012, 0.017, 0.022)
+TAPE_CLEARANCE_M = 0.005
+"""The open gripper's fingers and palm keep this far [m] from the estimated tape's surface
+on the joint moves to the pre-grasp pose (a pad swept through a curled tape's body drags
+it out of the jaw: the "missed" grasps of seeds 400037 and 400177)."""
 MAX_JOINT_STEP_RAD = 0.25      # per ~5 mm of a straight segment: more means a singularity or a flip
 PATH_STEP_M = 0.005
 
@@ -145,6 +162,7 @@ class GripperGeometry:
     max_opening: float
     pad_size: np.ndarray
     finger_length: float = 0.05
+    finger_thickness: float = 0.006
 
     @classmethod
     def from_config(cls, tool: Any) -> "GripperGeometry":
@@ -152,16 +170,18 @@ class GripperGeometry:
         flange_from_tcp = pose6_to_matrix(tool.flange_from_tcp)
         depth = float(np.linalg.norm(flange_from_tcp[:3, 3]))
         return cls(flange_from_tcp, float(tool.max_opening), np.asarray(tool.pad_size, float),
-                   finger_length=max(depth - 0.03, float(tool.pad_size[2]) / 2))
+                   finger_length=max(depth - 0.03, float(tool.pad_size[2]) / 2),
+                   finger_thickness=float(getattr(tool, "finger_thickness", 0.006)))
 
     def finger_boxes_tcp(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """(lo, hi) boxes in the TCP frame of the two open fingers and the palm."""
-        hx, ty, hz = self.pad_size[0] / 2, self.pad_size[1], self.pad_size[2] / 2
+        """(lo, hi) boxes in the TCP frame of the two open fingers (each its pad and the
+        finger behind it, ``finger_thickness`` thick) and the palm."""
+        hx, ty, hz = self.pad_size[0] / 2, self.pad_size[1] + self.finger_thickness, self.pad_size[2] / 2
         g = self.max_opening / 2
         boxes = [(np.array([-hx, s0, -self.finger_length]), np.array([hx, s1, hz]))
                  for s0, s1 in ((g, g + ty), (-g - ty, -g))]
-        boxes.append((np.array([-hx, -g - ty, -self.finger_length - 0.02]),
-                      np.array([hx, g + ty, -self.finger_length])))
+        w = g + self.pad_size[1] + 0.02     # the palm, as :meth:`shape` has it
+        boxes.append((np.array([-0.02, -w, -self.finger_length - 0.024]), np.array([0.02, w, -self.finger_length])))
         return boxes
 
     def shape(self) -> ToolShape:
@@ -270,7 +290,7 @@ class GraspPlan:
 # ------------------------------------------------------------------------------ planning
 def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, limits: SafetyLimits, *,
                ik: IK = ik_nearest, q_start: Any = None, tape_points: Any = None,
-               tape_base: Any = None) -> GraspPlan:
+               tape_base: Any = None, tape_surface: Any = None, speeds: "Speeds | None" = None) -> GraspPlan:
     """Plan a grasp of the tape at ``tip`` or raise :class:`PlanRefused`.
 
     ik: inverse kinematics (default the UR5e's closed form). q_start (6,): where the arm is
@@ -278,6 +298,17 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     chosen); default :data:`REFERENCE_JOINTS`. tape_points (N, 3): the estimated centre line
     (e.g. ``Estimate.nodes``), checked against the open fingers. tape_base (3,): where the
     tape is stuck on the part (default ``tape_points[0]``), for the peel direction.
+    tape_surface (M, 3): points on the estimated tape's faces (:func:`tape_surface_points`),
+    checked against the open fingers on the approach and, with :data:`TAPE_CLEARANCE_M`,
+    on the joint moves to the pre-grasp pose. speeds: the approach and lift speeds the plan
+    will run at (default :class:`Speeds`), at which no joint may turn faster than
+    ``limits.max_joint_speed`` on a straight segment.
+
+    Variants, in order: at the cell file's inset, every tilt of
+    :data:`APPROACH_TILTS_RAD` and pitch, the jaw either way round; then the body-side
+    tilts (:data:`BODY_SIDE_TILTS_RAD`); then the same at the insets of
+    :data:`EXTRA_INSETS_M` (the grasp point further back along the estimated end). The first
+    that passes every check is the plan.
     """
     if tip.verdict != "ok":
         # A robot acts only on an estimate the estimator vouches for (estimator/verdict.py).
@@ -289,23 +320,89 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     tape = None if tape_points is None else _densify(np.asarray(tape_points, float), 0.002)
     if tape_base is None and tape_points is not None:
         tape_base = np.asarray(tape_points, float)[0]
-    grasp_position = tip.position - params.inset * tip.trunk
+    surface = None if tape_surface is None else np.asarray(tape_surface, float).reshape(-1, 3)
+    speeds = Speeds() if speeds is None else speeds
+    solid = (gripper.check_points_flange(), gripper.shape())     # the same for every variant
     refusals: list[PlanRefused] = []
-    for pitch in APPROACH_PITCHES_RAD:
-        for tilt in APPROACH_TILTS_RAD:
-            for flipped in (False, True):
-                try:
-                    return _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper, limits,
-                                         ik, q_ref, q_start is not None, tape, pitch)
-                except PlanRefused as e:
-                    refusals.append(e)
-    # The most telling refusal: a collision (the tip is near the part or the table) over an
+    primary = 0        # how many refusals are of the first set (the cell file's inset, up to the side)
+    for inset in (params.inset, *(params.inset + d for d in EXTRA_INSETS_M)):
+        grasp_position, grasp_rotation = grasp_frame(tip, inset, params.inset, tape_points)
+        for tilts in (APPROACH_TILTS_RAD, BODY_SIDE_TILTS_RAD):
+            primary = primary or len(refusals)
+            for pitch in APPROACH_PITCHES_RAD:
+                for tilt in tilts:
+                    for flipped in (False, True):
+                        try:
+                            return _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper,
+                                                 limits, ik, q_ref, q_start is not None, tape, pitch,
+                                                 grasp_rotation=grasp_rotation, surface=surface, speeds=speeds,
+                                                 precheck=primary > 0, solid=solid)
+                        except PlanRefused as e:
+                            refusals.append(e)
+    # The most telling refusal of the first set of variants (the fallbacks are for the odd
+    # tip beside the part): a collision (the tip is near the part or the table) over an
     # unreachable pose over a limit (most straight approaches to a low tip start below the
-    # table), with the count of each.
+    # table), with the count of each over all variants.
     counts = {r: sum(e.reason == r for e in refusals) for r in ("collision", "unreachable", "limits")}
-    shown = next(e for r in ("collision", "unreachable", "limits", None) for e in refusals if r is None or e.reason == r)
+    first = refusals[:primary] or refusals
+    shown = next(e for r in ("collision", "unreachable", "limits", None) for e in first if r is None or e.reason == r)
     tally = ", ".join(f"{n} {r}" for r, n in counts.items() if n)
     raise PlanRefused(shown.reason, f"{shown.detail} (all {len(refusals)} approach variants refused: {tally})")
+
+
+def grasp_frame(tip: TipFrame, inset: float, straight: float, tape_points: Any = None) -> tuple[np.ndarray, np.ndarray]:
+    """(position (3,), world_from_grasp rotation (3, 3)) of the grasp point ``inset`` [m] in
+    from the tip. Up to ``straight`` [m] (the cell file's inset) along the tip's trunk, with
+    the tip's frame; further in, along the estimated centre line (``tape_points``, base
+    first, ending at the tip's plate), the tip's frame turned by the least rotation that
+    lays its trunk along the line there (without ``tape_points``: along the trunk)."""
+    R_tip = np.asarray(tip.rotation, float)
+    if inset <= straight + 1e-12 or tape_points is None:
+        return tip.position - inset * tip.trunk, R_tip
+    pts = np.asarray(tape_points, float)
+    line = [np.asarray(tip.position, float), *pts[-2::-1]]   # from the tip back to the base
+    left = inset
+    for a, b in zip(line[:-1], line[1:]):
+        length = float(np.linalg.norm(b - a))
+        if length < 1e-9:
+            continue
+        if left <= length or b is line[-1]:
+            trunk = (a - b) / length                 # outwards, towards the tip
+            position = a + (b - a) * min(left / length, 1.0)
+            break
+        left -= length
+    else:
+        return tip.position - inset * tip.trunk, R_tip
+    axis = np.cross(tip.trunk, trunk)
+    s, c = float(np.linalg.norm(axis)), float(tip.trunk @ trunk)
+    turn = _axis_angle(axis / s, np.arctan2(s, c)) if s > 1e-9 else np.eye(3)
+    return position, turn @ R_tip
+
+
+def tape_surface_points(nodes: Any, frames: Any, width: float, step: float = 0.002) -> np.ndarray:
+    """(M, 3) points on a plate chain's faces: along each plate (``nodes`` (n+1, 3), base
+    first) every ``step`` [m] and across its ``width`` [m] every ~2.5 mm, the plate's width
+    axis the second column of ``frames[i + 1]`` ((n+1, 3, 3), as ``forward_kinematics``
+    gives them)."""
+    nodes, frames = np.asarray(nodes, float), np.asarray(frames, float)
+    across = np.linspace(-0.5, 0.5, max(int(np.ceil(width / 0.0025)), 1) + 1) * width
+    out = []
+    for i in range(len(nodes) - 1):
+        a, b = nodes[i], nodes[i + 1]
+        k = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1)
+        line = a + (b - a) * np.linspace(0.0, 1.0, k + 1)[:, None]
+        out.append((line[:, None, :] + across[None, :, None] * frames[i + 1][:, 1]).reshape(-1, 3))
+    return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def estimated_surface(spec: Any, angles: Any) -> np.ndarray:
+    """:func:`tape_surface_points` of the plate chain ``angles`` (n, 3) [rad] of the tape
+    model ``spec`` (an ``estimator.TapeSpec``, e.g. ``Capture.tape``): what the planner keeps
+    the open gripper clear of."""
+    from tapecell.estimator.tape import forward_kinematics
+
+    shape = forward_kinematics(spec, np.asarray(angles, float))
+    return tape_surface_points(shape.nodes, shape.frames, float(spec.width))
 
 
 def lift_path(world_from_grasp: np.ndarray, tape_base: Any, lift: float, mode: str) -> list[np.ndarray]:
@@ -359,8 +456,15 @@ def tcp_rotation(tip: TipFrame, tilt: float, flipped: bool, pitch: float = 0.0) 
 
 
 def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper, limits, ik, q_ref,
-                  check_joint_path, tape, pitch=0.0) -> GraspPlan:
-    R = tcp_rotation(tip, tilt, flipped, pitch)
+                  check_joint_path, tape, pitch=0.0, grasp_rotation=None, surface=None, speeds=None,
+                  precheck=False, solid=None) -> GraspPlan:
+    """The plan of one approach variant, or :class:`PlanRefused` with the first check it
+    fails. ``precheck``: first the cheap checks (each waypoint's pose where it stands, the
+    arm's reach at the grasp), then the motions: the same answer, sooner for the many
+    fallback variants that fail (a refusal's reason may then be another of its failures)."""
+    speeds = Speeds() if speeds is None else speeds
+    at_grasp = tip if grasp_rotation is None else TipFrame(grasp_position, grasp_rotation, tip.cost)
+    R = tcp_rotation(at_grasp, tilt, flipped, pitch)
     approach = R[:, 2]
     world_from_tcp = {"pregrasp": _T(R, grasp_position - params.pregrasp_distance * approach),
                       "grasp": _T(R, grasp_position)}
@@ -370,8 +474,17 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
     names = list(world_from_tcp)
     tcp_from_flange = invert(gripper.flange_from_tcp)
     flange = {k: matrix_to_pose6(T @ tcp_from_flange) for k, T in world_from_tcp.items()}
-    points = gripper.check_points_flange()
-    shape = gripper.shape()
+    points, shape = solid if solid is not None else (gripper.check_points_flange(), gripper.shape())
+    if precheck:
+        try:
+            for name in ("grasp", "pregrasp", names[-1]):
+                check_linear_move(limits, flange[name], flange[name], limits.max_tcp_speed, limits.max_tcp_accel,
+                                  points, shape)
+        except SafetyError as e:
+            raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits", str(e)) from None
+        if ik is ik_nearest and ik(pose6_to_matrix(flange["grasp"]), q_ref) is None:   # None: no solution at all
+            raise PlanRefused("unreachable", f"no joint solution puts the gripper at the grasp pose "
+                                             f"(TCP at {_mm(grasp_position)} mm)")
     try:
         check_linear_move(limits, flange["pregrasp"], flange["pregrasp"], limits.max_tcp_speed,
                           limits.max_tcp_accel, points, shape)
@@ -380,14 +493,17 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
                               shape)
     except SafetyError as e:
         raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits", str(e)) from None
-    if tape is not None:
-        _check_fingers_clear(tape, world_from_tcp["pregrasp"], world_from_tcp["grasp"], gripper)
+    for points_on_tape in (tape, surface):
+        if points_on_tape is not None:
+            _check_fingers_clear(points_on_tape, world_from_tcp["pregrasp"], world_from_tcp["grasp"], gripper)
     q_pre, via = _reach_pregrasp(world_from_tcp["pregrasp"], flange["pregrasp"], tcp_from_flange, q_ref, ik,
-                                 limits, points, shape, check_joint_path)
+                                 limits, points, shape, check_joint_path,
+                                 tape_clear=None if surface is None else (surface, gripper))
     q = {"pregrasp": q_pre}
     path = [q_pre]
     for a, b in zip(names[:-1], names[1:]):
-        q[b], along = _follow_line(ik, flange[a], flange[b], q[a], "approach" if b == "grasp" else "lift")
+        q[b], along = _follow_line(ik, flange[a], flange[b], q[a], "approach" if b == "grasp" else "lift",
+                                   speeds.approach if b == "grasp" else speeds.lift, limits.max_joint_speed)
         path += along
     try:
         check_wrist_clear(limits, np.array(path), "approach and lift")
@@ -408,10 +524,12 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
 
 def _reach_pregrasp(world_from_pre: np.ndarray, flange_pre: np.ndarray, tcp_from_flange: np.ndarray,
                     q_ref: np.ndarray, ik: IK, limits: SafetyLimits, points: np.ndarray, shape: ToolShape,
-                    check_joint_path: bool) -> tuple[np.ndarray, dict]:
+                    check_joint_path: bool, tape_clear: tuple | None = None) -> tuple[np.ndarray, dict]:
     """(joints at the pre-grasp pose, the "above" waypoint or {}): the arm configuration
     nearest ``q_ref`` whose joint move there (straight, or through "above") keeps the wrist
-    and the gripper clear; with the UR5e's own kinematics the other configurations (elbow,
+    and the gripper clear (and, with ``tape_clear`` = (tape surface points (M, 3), the
+    gripper's geometry), the open fingers and palm :data:`TAPE_CLEARANCE_M` from the
+    estimated tape); with the UR5e's own kinematics the other configurations (elbow,
     wrist, shoulder flipped) are tried when the nearest one is blocked."""
     T = pose6_to_matrix(flange_pre)
     q_near = ik(T, q_ref)
@@ -433,17 +551,65 @@ def _reach_pregrasp(world_from_pre: np.ndarray, flange_pre: np.ndarray, tcp_from
         try:
             check_joint_move(limits, q_ref, q_pre, limits.max_joint_speed, limits.max_joint_accel, points,
                              shape=shape)
+            if tape_clear is not None:
+                check_tape_clear(q_ref, q_pre, *tape_clear, tcp_from_flange)
             return q_pre, {}
         except SafetyError as e:
             first = first or e
             # A straight joint move would sweep the wrist or the gripper through the table
-            # or the part: go through a pose above the pre-grasp, or high over the part.
-            for via in (_via_above(world_from_pre, tcp_from_flange, q_ref, q_pre, ik, limits, points, shape),
-                        _via_clear(tcp_from_flange, q_ref, q_pre, limits, points, shape)):
+            # or the part (or the open gripper through the tape): go through a pose above
+            # the pre-grasp, or high over the part.
+            for via in (_via_above(world_from_pre, tcp_from_flange, q_ref, q_pre, ik, limits, points, shape,
+                                   tape_clear),
+                        _via_clear(tcp_from_flange, q_ref, q_pre, limits, points, shape, tape_clear)):
                 if via:
                     return q_pre, via
     raise PlanRefused("collision" if isinstance(first, KeepOutError) else "limits",
                       f"joint move to the pre-grasp pose: {first}")
+
+
+def check_tape_clear(q_start: np.ndarray, q_target: np.ndarray, tape_surface: np.ndarray, gripper: GripperGeometry,
+                     tcp_from_flange: np.ndarray, margin: float = TAPE_CLEARANCE_M) -> None:
+    """Raise :class:`~cell.safety.CollisionError` where a joint move from ``q_start`` to
+    ``q_target`` [rad] (sampled as :func:`~cell.safety.check_joint_move` samples it) brings
+    the open gripper's fingers or palm within ``margin`` [m] of a point of ``tape_surface``
+    (M, 3) [m, world]: the tape is not an obstacle of the cell, but a pad swept through it
+    drags the floppy tape out of the jaw before the approach starts. A move that starts
+    with the gripper already that close (an arm an operator left at the tape, after probing
+    it in freedrive) is not judged: where it goes from there is the operator's setup, not
+    the planner's choice."""
+    from .safety import CollisionError
+
+    if len(tape_surface) == 0:
+        return
+    qa, qb = np.asarray(q_start, float), np.asarray(q_target, float)
+    n = int(np.ceil(np.max(np.abs(qb - qa)) / 0.01)) + 2
+    boxes = gripper.finger_boxes_tcp()
+    flange_from_tcp = invert(tcp_from_flange)
+    centre = tape_surface.mean(axis=0)
+    reach = float(np.max(np.linalg.norm(tape_surface - centre, axis=1)))
+    near_at_start = None
+    for s in np.linspace(0.0, 1.0, n):
+        world_from_tcp = fk(qa + s * (qb - qa)) @ flange_from_tcp
+        if near_at_start is not None and \
+                np.linalg.norm(world_from_tcp[:3, 3] - centre) > reach + gripper.finger_length + 0.1:
+            continue          # the whole gripper is far from the whole tape
+        local = (tape_surface - world_from_tcp[:3, 3]) @ world_from_tcp[:3, :3]
+        near = np.zeros((len(boxes), len(tape_surface)), bool)
+        for i, (lo, hi) in enumerate(boxes):
+            near[i] = np.all((local > lo - margin) & (local < hi + margin), axis=1)
+        if near_at_start is None:
+            near_at_start = near.any(axis=0)
+            if np.any(near_at_start):
+                return
+            continue
+        for i in range(len(boxes)):
+            inside = near[i]
+            if np.any(inside):
+                part = "palm" if i == 2 else "finger"
+                raise CollisionError(f"joint move: the open gripper's {part} would pass within "
+                                     f"{margin * 1e3:.0f} mm of the estimated tape near "
+                                     f"{_mm(tape_surface[np.argmax(inside)])} mm")
 
 
 VIA_RISE_M = 0.15
@@ -459,50 +625,67 @@ def _waypoint_at(q: np.ndarray, tcp_from_flange: np.ndarray) -> dict:
             "q": np.asarray(q, float)}
 
 
-def _clear_moves(limits, points, shape, *qs) -> bool:
-    """Are the joint moves through ``qs`` in turn clear of every limit and obstacle?"""
+def _clear_moves(limits, points, shape, *qs, tape_clear=None, tcp_from_flange=None) -> bool:
+    """Are the joint moves through ``qs`` in turn clear of every limit and obstacle (and of
+    the estimated tape, with ``tape_clear``)?"""
     try:
         for a, b in zip(qs[:-1], qs[1:]):
             check_joint_move(limits, a, b, limits.max_joint_speed, limits.max_joint_accel, points, shape=shape)
+            if tape_clear is not None:
+                check_tape_clear(a, b, *tape_clear, tcp_from_flange)
     except SafetyError:
         return False
     return True
 
 
 def _via_above(world_from_pre: np.ndarray, tcp_from_flange: np.ndarray, q_ref: np.ndarray, q_pre: np.ndarray,
-               ik: IK, limits: SafetyLimits, points: np.ndarray, shape: ToolShape) -> dict:
+               ik: IK, limits: SafetyLimits, points: np.ndarray, shape: ToolShape, tape_clear=None) -> dict:
     """{"above": waypoint} through which both joint moves are clear, or {}."""
     T = world_from_pre.copy()
     T[2, 3] += VIA_RISE_M
     flange = matrix_to_pose6(T @ tcp_from_flange)
     q_via = ik(pose6_to_matrix(flange), q_pre)
-    if q_via is None or not _clear_moves(limits, points, shape, q_ref, q_via, q_pre):
+    if q_via is None or not _clear_moves(limits, points, shape, q_ref, q_via, q_pre, tape_clear=tape_clear,
+                                         tcp_from_flange=tcp_from_flange):
         return {}
     return {"above": {"world_from_tcp": T, "flange": flange, "q": q_via}}
 
 
 def _via_clear(tcp_from_flange: np.ndarray, q_ref: np.ndarray, q_pre: np.ndarray, limits: SafetyLimits,
-               points: np.ndarray, shape: ToolShape) -> dict:
+               points: np.ndarray, shape: ToolShape, tape_clear=None) -> dict:
     """{"clear": REFERENCE_JOINTS} through which both joint moves are clear, or {}."""
-    if np.allclose(q_ref, REFERENCE_JOINTS) or not _clear_moves(limits, points, shape, q_ref, REFERENCE_JOINTS, q_pre):
+    if np.allclose(q_ref, REFERENCE_JOINTS) or not _clear_moves(limits, points, shape, q_ref, REFERENCE_JOINTS, q_pre,
+                                                                tape_clear=tape_clear,
+                                                                tcp_from_flange=tcp_from_flange):
         return {}
     return {"clear": _waypoint_at(REFERENCE_JOINTS, tcp_from_flange)}
 
 
-def _follow_line(ik: IK, start: np.ndarray, end: np.ndarray, q0: np.ndarray, what: str) -> tuple:
+def _follow_line(ik: IK, start: np.ndarray, end: np.ndarray, q0: np.ndarray, what: str,
+                 speed: float | None = None, max_joint_speed: float | None = None) -> tuple:
     """(joints at ``end``, the joints at every sample on the way) after following the
     straight flange line from ``start``, keeping one configuration (as ``moveL`` does);
     refuse where the line leaves the reachable set or passes a singularity (a large joint
-    step between nearby samples)."""
-    n = int(np.ceil(np.linalg.norm(end[:3] - start[:3]) / PATH_STEP_M)) + 1
+    step between nearby samples), or, given the line's ``speed`` [m/s], where a joint would
+    have to turn faster than ``max_joint_speed`` [rad/s] to keep the tool on the line (near
+    a wrist singularity: the simulated arm then leaves the line by centimetres, seed 400120,
+    and a real controller stops)."""
+    length = float(np.linalg.norm(end[:3] - start[:3]))
+    n = int(np.ceil(length / PATH_STEP_M)) + 1
     q = q0
     along = []
+    fastest = np.inf if not (speed and max_joint_speed) else max_joint_speed * (length / n) / speed
     for pose in interpolate_pose6(start, end, n + 1)[1:]:
         q_next = ik(pose6_to_matrix(pose), q)
         if q_next is None:
             raise PlanRefused("unreachable", f"the {what} leaves the arm's reach near flange {_mm(pose[:3])} mm")
-        if np.max(np.abs(q_next - q)) > MAX_JOINT_STEP_RAD:
+        step = float(np.max(np.abs(q_next - q)))
+        if step > MAX_JOINT_STEP_RAD:
             raise PlanRefused("unreachable", f"the {what} passes a singularity near flange {_mm(pose[:3])} mm")
+        if step > fastest:
+            raise PlanRefused("unreachable", f"the {what} at {speed:g} m/s would turn a joint at "
+                                             f"{step / fastest * max_joint_speed:.1f} rad/s (limit "
+                                             f"{max_joint_speed:g}) near flange {_mm(pose[:3])} mm: near a singularity")
         q = q_next
         along.append(q)
     return q, along
@@ -513,16 +696,18 @@ def _check_fingers_clear(tape: np.ndarray, start: np.ndarray, end: np.ndarray, g
     approach from ``start`` to ``end`` (world_from_tcp)."""
     boxes = gripper.finger_boxes_tcp()
     n = int(np.ceil(np.linalg.norm(end[:3, 3] - start[:3, 3]) / 0.002)) + 1
-    for s in np.linspace(0.0, 1.0, n + 1):
-        T = start.copy()
-        T[:3, 3] = start[:3, 3] + s * (end[:3, 3] - start[:3, 3])
-        local = (tape - T[:3, 3]) @ T[:3, :3]
-        for i, (lo, hi) in enumerate(boxes):
-            inside = np.all((local > lo) & (local < hi), axis=1)
-            if np.any(inside):
-                part = "palm" if i == 2 else "finger"
-                raise PlanRefused("collision", f"the open gripper's {part} would hit the tape near "
-                                               f"{_mm(tape[np.argmax(inside)])} mm on the approach")
+    # The approach only translates: the tape in the TCP frame at every sample at once.
+    local0 = (tape - start[:3, 3]) @ start[:3, :3]                             # (M, 3)
+    shift = np.linspace(0.0, 1.0, n + 1)[:, None] * ((end[:3, 3] - start[:3, 3]) @ start[:3, :3])
+    local = local0[None] - shift[:, None]                                     # (n + 1, M, 3)
+    inside = np.stack([np.all((local > lo) & (local < hi), axis=2) for lo, hi in boxes])   # (boxes, n + 1, M)
+    if np.any(inside):
+        hit = inside.any(axis=2)                                              # (boxes, n + 1)
+        first = int(np.argmax(hit.any(axis=0)))                               # the earliest sample
+        i = int(np.argmax(hit[:, first]))
+        part = "palm" if i == 2 else "finger"
+        raise PlanRefused("collision", f"the open gripper's {part} would hit the tape near "
+                                       f"{_mm(tape[np.argmax(inside[i, first])])} mm on the approach")
 
 
 def _densify(points: np.ndarray, step: float) -> np.ndarray:

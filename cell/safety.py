@@ -263,10 +263,9 @@ def _check_box_path(limits: SafetyLimits, paths: np.ndarray, labels: list[str], 
     """paths: (n_samples, k, 3) world positions of k points along a motion."""
     lo, hi = limits.workspace_min, limits.workspace_max
     inside = _inside(paths, lo, hi)
-    # every point's segments in one call (elementwise: the same answers as point by point)
-    k = paths.shape[1]
+    n, k = paths.shape[:2]
     hits = segments_hit_box(paths[:-1].reshape(-1, 3), paths[1:].reshape(-1, 3), limits.keepout_min,
-                            limits.keepout_max).reshape(-1, k) if len(paths) > 1 else np.zeros((0, k), bool)
+                            limits.keepout_max).reshape(n - 1, k) if n > 1 else np.zeros((0, k), bool)
     for j, label in enumerate(labels):
         if not inside[-1, j]:
             raise SafetyError(f"{motion}: the {label} target {_fmt(paths[-1, j])} m is outside the workspace box "

@@ -65,7 +65,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     from .arm import SimArm
     from tapecell.cell.config import CellConfig, load_cell_config
 
-    from tapecell.cell.planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, plan_grasp
+    from tapecell.cell.planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, estimated_surface, plan_grasp
     from tapecell.cell.safety import SafetyLimits
 
     from tapecell.cell.story import Story
@@ -164,7 +164,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         try:
             plan = plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),
                               GripperGeometry.from_config(cfg.tools.gripper), limits,
-                              q_start=q_start, tape_points=est.nodes)
+                              q_start=q_start, tape_points=est.nodes,
+                              tape_surface=estimated_surface(capture.tape, est.angles))
         except PlanRefused as e:
             times["plan"] = time.perf_counter() - t0
             story.add("plan", float(cell.data.time), (None, q_start, e))

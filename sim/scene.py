@@ -217,8 +217,9 @@ def _add_gripper(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
         # q = 0: pad faces meet at the TCP; q > 0 opens by q on each side.
         f.add_joint(name=f"finger_{side}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, sgn, 0],
                     range=[-0.002, gr.max_opening / 2], damping=[20.0, 0, 0], armature=0.01)
-        f.add_geom(name=f"finger_{side}", type=box, size=[px / 2, 0.003, finger_len / 2],
-                   pos=[0, sgn * (py + 0.003), -pz / 2 - finger_len / 2 + pz / 2 - 0.0],
+        ft = gr.finger_thickness / 2
+        f.add_geom(name=f"finger_{side}", type=box, size=[px / 2, ft, finger_len / 2],
+                   pos=[0, sgn * (py + ft), -pz / 2 - finger_len / 2 + pz / 2 - 0.0],
                    rgba=[0.25, 0.25, 0.27, 1], contype=0, conaffinity=0, group=GROUP_GRIPPER, mass=0.05)
         f.add_geom(name=f"pad_{side}", type=box, size=[px / 2, py / 2, pz / 2], pos=[0, sgn * py / 2, 0],
                    rgba=[0.1, 0.1, 0.1, 1], contype=PAD_CONTYPE, conaffinity=0, condim=3,

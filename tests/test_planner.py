@@ -159,7 +159,7 @@ def test_refuses_when_the_fingers_would_hit_the_tape():
     w = tip.rotation[:, 1]
     sheet = (tip.position + a.reshape(-1, 1) * tip.trunk + b.reshape(-1, 1) * w + 0.0205 * tip.normal)
     with pytest.raises(PlanRefused) as e:
-        plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=np.vstack([nodes, sheet]))
+        plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, tape_surface=sheet)
     assert e.value.reason == "collision" and "finger" in str(e.value)
     plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes)  # the straight tape is fine
 
@@ -231,6 +231,13 @@ def test_a_low_hanging_tip_is_reached_where_the_gripper_clears_the_table_and_the
     angles[0, 1] = angles[3, 1] = -np.pi / 2
     tip, nodes = tape(angles)
     assert tip.position[2] == pytest.approx(0.0405, abs=1e-3) and tip.trunk[2] < -0.99
+    # 30 mm from the part's face, the jaw's near finger (its pad and 6 mm of finger behind
+    # it, 28 mm from the jaw's centre) would come 2 mm from the part: refused.
+    with pytest.raises(PlanRefused, match="part"):
+        plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
+    angles[3, 1] = -np.radians(80.0)                # hanging 10 deg outwards: 40 mm from the face
+    tip, nodes = tape(angles)
+    assert tip.position[2] == pytest.approx(0.0414, abs=1e-3) and tip.trunk[2] < -0.98
     with pytest.raises(PlanRefused):
         plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, q_start=REFERENCE_JOINTS)
     plan = plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
@@ -258,3 +265,156 @@ def test_a_tip_on_the_tables_surface_is_refused_as_a_collision():
     tip, nodes = tape(angles)                       # hangs down the part's face to 11 mm
     with pytest.raises(PlanRefused):
         plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
+
+
+def _distance_to_polyline(p, line):
+    d = []
+    for a, b in zip(line[:-1], line[1:]):
+        t = np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
+        d.append(np.linalg.norm(p - (a + t * (b - a))))
+    return min(d)
+
+
+def test_an_end_hanging_beside_the_parts_face_is_taken_further_back_from_above(monkeypatch):
+    # The tape curls over the part's +x edge and hangs 16 mm outside its face, the tip 10 mm
+    # below the part's top. An open jaw (40 mm, the fingers 8 mm thick) across the tape at
+    # the cell file's 8 mm inset would put the near finger inside the part, from whatever
+    # side in the tape's plane it comes (seeds 400040, 400075, 400095 of a campaign). Higher
+    # up the hanging end, the near finger passes over the part's top, 5 mm clear.
+    from tapecell.cell import planner
+    from tapecell.cell.config import load_cell_config
+    from tapecell.cell.safety import check_linear_move, check_wrist_clear
+
+    cfg = load_cell_config()
+    limits = SafetyLimits.from_cell(cfg)
+    gripper = GripperGeometry.from_config(cfg.tools.gripper)
+    angles = np.zeros((5, 3))
+    angles[:, 1] = np.radians([0.0, -60.0, -30.0, -60.0, -20.0])
+    tip, nodes = tape(angles)
+    assert 0.075 < tip.position[0] < 0.078 and tip.position[2] < 0.095 and tip.trunk[2] < -0.95
+    with monkeypatch.context() as m:          # the first set of variants alone: refused
+        m.setattr(planner, "EXTRA_INSETS_M", ())
+        m.setattr(planner, "BODY_SIDE_TILTS_RAD", ())
+        with pytest.raises(PlanRefused) as e:
+            plan_grasp(tip, PARAMS, gripper, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
+        assert e.value.reason == "collision" and "part" in str(e.value)
+    plan = plan_grasp(tip, PARAMS, gripper, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
+    grasp = plan.waypoint("grasp").world_from_tcp
+    # On the estimated centre line, a few mm further back than the cell file's inset.
+    line = np.vstack([nodes[:-1], tip.position])
+    assert _distance_to_polyline(grasp[:3, 3], line) < 1e-9
+    inset = np.linalg.norm(grasp[:3, 3] - tip.position)
+    assert PARAMS.inset < inset <= PARAMS.inset + max(planner.EXTRA_INSETS_M) + 1e-9
+    # The jaw closes across the tape there: along its normal, up to the approach's pitch.
+    _, R = planner.grasp_frame(tip, inset, PARAMS.inset, nodes)
+    assert abs(R[1, 2]) < 1e-9 and abs(R[:, 0] @ (grasp[:3, 3] - tip.position)) > 0.99 * inset
+    assert abs(grasp[:3, 1] @ R[:, 2]) >= np.cos(plan.approach_pitch_rad) - 1e-9
+    # Every pose and every straight move keeps the 5 mm clearance from the part and the table.
+    shape = gripper.shape()
+    points = gripper.check_points_flange()
+    for w in plan.waypoints:
+        F = pose6_to_matrix(w.flange_pose)
+        pts = (F[:3, :3] @ shape.points_flange.T).T + F[:3, 3]
+        for ob in limits.obstacles:
+            assert np.min(ob.distance(pts) - shape.radii) >= limits.clearance - 1e-9, (w.name, ob.name)
+        check_wrist_clear(limits, w.q[None], w.name)
+    linear = [s.waypoint for s in plan.steps if s.action == "move_linear"]
+    previous = "pregrasp"
+    for name in linear:
+        check_linear_move(limits, plan.waypoint(previous).flange_pose, plan.waypoint(name).flange_pose,
+                          0.1, 0.8, points, shape, plan.waypoint(previous).q)
+        previous = name
+    # Executed on the fake arm through the same checks.
+    arm = FakeArm(q0=REFERENCE_JOINTS)
+    with arm:
+        execute_plan(plan, arm, limits, Speeds())
+
+
+def test_a_pad_is_not_swept_through_the_tape_on_the_joint_move_to_the_pregrasp():
+    # A curled tape's body beside the path the open gripper takes to the pre-grasp pose
+    # (seeds 400037, 400177: the pad dragged the tape out of the jaw before the approach).
+    from tapecell.cell.config import load_cell_config
+    from tapecell.cell.planner import TAPE_CLEARANCE_M, check_tape_clear, tape_surface_points
+    from tapecell.cell.poses import invert
+
+    cfg = load_cell_config()
+    park = np.array(cfg.arm.park_joints)
+    tip, nodes = tape(np.zeros(15))
+    shape = forward_kinematics(SPEC, np.zeros((5, 3)))
+    surface = tape_surface_points(shape.nodes, shape.frames, SPEC.width)
+    assert len(surface) > 500 and np.max(np.abs((surface - BASE)[:, 1])) == pytest.approx(0.015)
+    plan = plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, q_start=park, tape_surface=surface)
+    assert [s.waypoint for s in plan.steps if s.action == "move_joints"] == ["pregrasp"]
+    tcp_from_flange = invert(GRIPPER.flange_from_tcp)
+    q_pre = plan.waypoint("pregrasp").q
+    check_tape_clear(park, q_pre, surface, GRIPPER, tcp_from_flange)
+    # A patch of tape where the left finger passes 60 % of the way along that joint move.
+    world_from_tcp = fk(park + 0.6 * (q_pre - park)) @ GRIPPER.flange_from_tcp
+    a, b = np.meshgrid(np.linspace(-0.004, 0.004, 5), np.linspace(-0.004, 0.004, 5))
+    patch_tcp = np.c_[a.ravel(), np.full(a.size, 0.024), b.ravel() - 0.03]
+    patch = patch_tcp @ world_from_tcp[:3, :3].T + world_from_tcp[:3, 3]
+    with pytest.raises(SafetyError, match="estimated tape"):
+        check_tape_clear(park, q_pre, np.vstack([surface, patch]), GRIPPER, tcp_from_flange)
+    # Planned with it, the arm goes another way, and every joint move keeps the clearance.
+    replanned = plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, q_start=park,
+                           tape_surface=np.vstack([surface, patch]))
+    moves = [replanned.waypoint(s.waypoint).q for s in replanned.steps if s.action == "move_joints"]
+    assert len(moves) > 1 or np.max(np.abs(moves[0] - q_pre)) > 1e-6
+    for qa, qb in zip([park, *moves[:-1]], moves):
+        check_tape_clear(qa, qb, np.vstack([surface, patch]), GRIPPER, tcp_from_flange, TAPE_CLEARANCE_M)
+    # Without the tape's faces the planner knew nothing of the patch: the first plan.
+    again = plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, q_start=park)
+    np.testing.assert_allclose(again.waypoint("pregrasp").q, q_pre)
+
+
+def test_a_straight_move_near_a_wrist_singularity_is_refused_at_its_speed():
+    # A 50 mm approach past a wrist singularity (joint 5 near -pi): joints 4 and 6 turn
+    # 1.5 rad, ~6 rad/s at 0.1 m/s (seed 400120: the simulated arm left the line by 50 mm
+    # and a pad pushed the tape out of the jaw). The old guard (0.25 rad per 5 mm) let it
+    # through; at the plan's speed it exceeds the 1 rad/s joint limit.
+    from tapecell.cell.kinematics import ik_nearest
+    from tapecell.cell.planner import _follow_line
+
+    start = np.array([-0.2837, 0.3944, 0.1639, 0.8574, 1.5331, 1.5207])
+    end = np.array([-0.2393, 0.4173, 0.1658, 0.8574, 1.5331, 1.5207])
+    q0 = ik_nearest(pose6_to_matrix(start), REFERENCE_JOINTS)
+    q_end, along = _follow_line(ik_nearest, start, end, q0, "approach")
+    assert abs(q_end[3] - q0[3]) > 1.0 and abs(abs(q0[4]) - np.pi) < 0.1
+    with pytest.raises(PlanRefused, match="rad/s") as e:
+        _follow_line(ik_nearest, start, end, q0, "approach", 0.1, 1.0)
+    assert e.value.reason == "unreachable"
+    # Slowly enough, the same line is allowed; a line away from the singularity at full speed too.
+    _follow_line(ik_nearest, start, end, q0, "approach", 0.01, 1.0)
+    tip, nodes = tape(np.zeros(15))
+    plan = plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes)
+    names = [w.name for w in plan.waypoints]
+    speeds = Speeds()
+    for a, b in zip(names[names.index("pregrasp"):-1], names[names.index("pregrasp") + 1:]):
+        speed = speeds.approach if b == "grasp" else speeds.lift
+        _follow_line(ik_nearest, plan.waypoint(a).flange_pose, plan.waypoint(b).flange_pose,
+                     plan.waypoint(a).q, b, speed, LIMITS.max_joint_speed)
+
+
+def test_planned_straight_moves_keep_the_joint_speed_limit():
+    from tapecell.cell.kinematics import ik_nearest
+    from tapecell.cell.planner import _follow_line
+
+    speeds = Speeds()
+    checked = 0
+    for tip, nodes in random_tapes(10, seed=11):
+        try:
+            plan = plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes)
+        except PlanRefused:
+            continue
+        names = [w.name for w in plan.waypoints]
+        i = names.index("pregrasp")
+        for a, b in zip(names[i:-1], names[i + 1:]):
+            speed = speeds.approach if b == "grasp" else speeds.lift
+            _, along = _follow_line(ik_nearest, plan.waypoint(a).flange_pose, plan.waypoint(b).flange_pose,
+                                    plan.waypoint(a).q, b)
+            path = np.array([plan.waypoint(a).q, *along])
+            length = np.linalg.norm(plan.waypoint(b).flange_pose[:3] - plan.waypoint(a).flange_pose[:3])
+            rate = np.max(np.abs(np.diff(path, axis=0))) / (length / (len(path) - 1)) * speed
+            assert rate <= LIMITS.max_joint_speed + 1e-9, (a, b, rate)
+            checked += 1
+    assert checked >= 30

@@ -98,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     from tapecell.estimator.capture import load_cameras, save_capture
     from tapecell.cell.config import load_cell_config
 
-    from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, Speeds, TipFrame,
+    from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, Speeds, TipFrame, estimated_surface,
                                        execute_plan, plan_grasp)
     from tapecell.cell.safety import SafetyLimits
     from tapecell.cell.story import Story
@@ -144,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
             kw = {} if ik is None else {"ik": ik}
             return plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),
                               GripperGeometry.from_config(cfg.tools.gripper), limits,
-                              q_start=q_start, tape_points=est.nodes, **kw)
+                              q_start=q_start, tape_points=est.nodes,
+                              tape_surface=estimated_surface(capture.tape, est.angles), **kw)
 
         shown = make_plan(None)
         story.add("plan", None, (shown, REFERENCE_JOINTS, None))
