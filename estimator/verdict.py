@@ -56,6 +56,9 @@ EDGE_PX = 10
 (its two corners and its middle) must lie within this many pixels (~4 mm at the tape) of
 observed background (a tip in front of or behind the tape's own body is not located by
 that silhouette; 3 px refused 7 of 60 good sim fits whose estimated edge was a few px in)."""
+BOX_OUTLINE_PX = 3.0
+"""Tip edge points this close [px] to a scene box's projected outline are not at the tape's
+own outline (the fit's ``box_edge_px`` alike)."""
 EDGE_RUN_PX = 3
 EDGE_RUN_FRACTION = 0.125
 EDGE_RUN_MIN_PX = 6.0
@@ -336,16 +339,45 @@ def _near_background(observed: np.ndarray, x: int, y: int, r: int) -> bool:
     return bool((observed[y0:y1, x0:x1] == 0).any())
 
 
-def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray) -> bool:
+def _box_outline_px(view: View, boxes: Sequence[Box], uv: np.ndarray) -> np.ndarray:
+    """(k,) distance [px] from each image point ``uv`` (k, 2) to the nearest scene box's
+    projected outline (inf without boxes): where a silhouette's edge may be the box's."""
+    out = np.full(len(uv), np.inf)
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+    for box in boxes:
+        corners = box.center + (signs * box.half) @ box.rotation.T
+        if np.any(view.camera.to_camera(corners)[:, 2] <= 0):
+            continue
+        hull = cv2.convexHull(view.camera.project(corners).astype(np.float32))
+        for k, (u, v) in enumerate(uv):
+            if np.isfinite(u) and np.isfinite(v):
+                out[k] = min(out[k], abs(cv2.pointPolygonTest(hull, (float(u), float(v)), True)))
+    return out
+
+
+def _near_tape(observed: np.ndarray, x: int, y: int, r: int) -> bool:
+    """Is there observed tape within ``r`` px (a square) of crop pixel (x, y)?"""
+    h, w = observed.shape
+    x0, x1, y0, y1 = max(0, x - r), min(w, x + r + 1), max(0, y - r), min(h, y + r + 1)
+    return x1 > x0 and y1 > y0 and bool(observed[y0:y1, x0:x1].any())
+
+
+def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray,
+                boxes: Sequence[Box] = ()) -> bool:
     """Does the tip edge (``points`` (k, 3), k odd, evenly from one corner to the other)
     lie at the observed outline? Either its middle and a corner project within EDGE_PX of
     observed background, or a stretch of it from a corner, at least EDGE_RUN_FRACTION of
-    its width, lies within EDGE_RUN_PX of it (an end hooked over the body: part of its edge
-    is seen against the background, the rest over the body). (A tape seen end-on puts its
+    its width, lies within EDGE_RUN_PX of it and of observed tape, on the outline (an end
+    hooked over the body: part of its edge is seen against the background, the rest over
+    the body). (A tape seen end-on puts its
     corners near the outline and its middle inside the silhouette, where nothing locates
-    the end.)"""
+    the end.) A point within BOX_OUTLINE_PX of a scene box's projected outline does not
+    count (the silhouette's edge there may be the box's, where the tape goes behind it: a
+    wrong "ok" 41 mm off laid its tip edge along the part's edge), nor, for the stretch,
+    within EDGE_RUN_PX more."""
     uv = view.camera.project(points)
     k = len(points)
+    near_box = _box_outline_px(view, boxes, uv) if boxes else np.full(k, np.inf)
     loose, tight = [], []
     for u, v in uv:
         if not (np.isfinite(u) and np.isfinite(v)):
@@ -353,8 +385,12 @@ def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], point
             tight.append(False)
             continue
         x, y = int(round(u)) - origin[0], int(round(v)) - origin[1]
-        loose.append(_near_background(observed, x, y, EDGE_PX))
-        tight.append(_near_background(observed, x, y, EDGE_RUN_PX))
+        box = near_box[len(loose)]
+        loose.append(box >= BOX_OUTLINE_PX and _near_background(observed, x, y, EDGE_PX))
+        # On the outline: background and observed tape both within EDGE_RUN_PX (a model
+        # edge out over the background is no edge seen).
+        tight.append(box >= BOX_OUTLINE_PX + EDGE_RUN_PX and _near_background(observed, x, y, EDGE_RUN_PX)
+                     and _near_tape(observed, x, y, EDGE_RUN_PX))
     if loose[k // 2] and (loose[0] or loose[-1]):
         return True
     run = int(np.ceil(EDGE_RUN_FRACTION * (k - 1))) + 1
@@ -436,7 +472,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
-    seen = [s_ and _on_outline(v, o, xy, edge) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
+    seen = [s_ and _on_outline(v, o, xy, edge, boxes) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
             for s_, v, o, xy in zip(seen, views, observed, origins)]
     # Observed tape near the tip that the model leaves unexplained, per view that sees the
     # end: all of it, and what of it goes on past the tip.

@@ -257,6 +257,12 @@ def test_an_end_hooked_over_the_body_is_located_by_the_part_of_its_edge_against_
     assert _on_outline(view, observed, (0, 0), edge)
     inside = edge - np.array([0.0, 0.15, 0.0])   # the row v = 85: 15 px inside the hook
     assert not _on_outline(view, observed, (0, 0), inside)
+    # A model edge reaching out over the background (u 20-50, left of the body) and then deep
+    # into it: no stretch of it is on the outline (a wrong "ok" 41 mm off in an episode).
+    out_over = np.column_stack([np.linspace(-0.8, 0.4, 9), np.zeros(9), np.ones(9)])
+    body = np.zeros((200, 200), np.uint8)
+    body[40:160, 60:140] = 1
+    assert not _on_outline(View(cam, body.astype(bool)), body, (0, 0), out_over)
 
 
 def test_a_sliver_locates_the_end_only_where_it_ends_with_the_model():
