@@ -44,6 +44,8 @@ table or the part, or the open fingers through the tape).
 """
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -89,6 +91,10 @@ on the joint moves to the pre-grasp pose (a pad swept through a curled tape's bo
 it out of the jaw: the "missed" grasps of seeds 400037 and 400177)."""
 MAX_JOINT_STEP_RAD = 0.25      # per ~5 mm of a straight segment: more means a singularity or a flip
 PATH_STEP_M = 0.005
+WRIST_PLAN_MARGIN_M = 0.001
+"""The wrist keeps this much more than the clearance along the planned straight moves [m]:
+executed, the arm's joints differ slightly from the planned IK samples and the safety check
+runs again on them (a fresh campaign's plan passed at 5.0 mm and was stopped at 4.9)."""
 
 
 class PlanRefused(TaskFailed):
@@ -506,7 +512,10 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
                                    speeds.approach if b == "grasp" else speeds.lift, limits.max_joint_speed)
         path += along
     try:
-        check_wrist_clear(limits, np.array(path), "approach and lift")
+        # With a millimetre more than the clearance: the arm's joints on the way differ a
+        # little from these IK samples, and the same check runs again on them as it moves.
+        check_wrist_clear(dataclasses.replace(limits, clearance=limits.clearance + WRIST_PLAN_MARGIN_M),
+                          np.array(path), "approach and lift")
     except SafetyError as e:
         raise PlanRefused("collision", str(e)) from None
     waypoints = tuple(Waypoint(k, world_from_tcp[k], flange[k], q[k]) for k in names)
