@@ -51,7 +51,7 @@ from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
 from .tape import forward_kinematics
-from .verdict import FOLD_DEG, assess, is_close_alternative, mask_fault
+from .verdict import DISTINCT_TIP_M, FOLD_DEG, assess, is_close_alternative, mask_fault
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -173,6 +173,30 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     return j.verdict, j.reason, j.tip_views, tuple(near), j.offsets_px
 
 
+def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
+    """Which answer stands after the second look: for a fold, the second's; else the one
+    that explains the views better; an "ok" second look that explains them nearly as well
+    (the ambiguity margin) only where its tip is within DISTINCT_TIP_M of the first's (the
+    same hypothesis, now located). Further away, the first look, which explains the views
+    better and did not locate the end there, stands as the estimate, ambiguous, the second
+    its alternative (a wrong "ok" 16.7 mm off on a fresh synthetic capture with the part in
+    front: the first look's shape, 0.8 mm off, was hidden and cost less)."""
+    if folded or second.cost < first.cost:
+        return second
+    if not second.actionable or not is_close_alternative(second.cost, first.cost):
+        return first
+    d = float(np.linalg.norm(second.tip_position - first.tip_position))
+    if d <= DISTINCT_TIP_M:
+        return second
+    alternatives = tuple(first.alternatives)
+    if all(np.linalg.norm(a.tip_position - second.tip_position) > DISTINCT_TIP_M for a in alternatives):
+        alternatives = (Alternative(second.cost, second.tip_position, second.tip_rotation, second.angles),) + alternatives
+    return dataclasses.replace(first, verdict=Verdict.AMBIGUOUS, alternatives=alternatives,
+                               verdict_reason=(f"a shape with its tip {1e3 * d:.0f} mm away explains the views nearly "
+                                               f"as well (cost {second.cost:.3f} vs {first.cost:.3f}) and locates "
+                                               f"the end where this one does not"))
+
+
 def _garbage(capture: Capture, faults: list, method: str, start: float, config: FitConfig) -> Estimate:
     """A "poor_fit" estimate of a capture whose views ``faults`` [(index, why)] hold no tape
     silhouette: the fit of the other views (a straight tape when none is left), costed on
@@ -261,6 +285,5 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN)
     if method == "default" and not thorough and (folded or unsure):
         second = estimate(capture, method, thorough=True, config=config)
-        chosen = second if folded or second.actionable or second.cost < est.cost else est
-        return dataclasses.replace(chosen, time_s=est.time_s + second.time_s)
+        return dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
     return est

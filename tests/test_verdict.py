@@ -302,3 +302,23 @@ def test_an_end_short_of_the_image_border_is_located_one_at_the_border_is_not():
     at_border[100:200, 85:116] = 1
     assert not _continuation_visible(View(cam, at_border.astype(bool)), [], tip, tip_rotation, 0.030, at_border,
                                      (0, 0))
+
+
+def test_a_second_look_does_not_trade_a_better_unsure_shape_for_a_worse_ok_one():
+    """After the second look, an "ok" shape that costs more than the first look's unsure one
+    and ends elsewhere makes the first look ambiguous (the second its alternative); the same
+    hypothesis (tips within 10 mm) located is taken; a clearly worse one is not."""
+    from tapecell.estimator.fit import _second_look
+
+    est = estimate(make_capture(3, SyntheticOptions(cameras=2)))
+    first = dataclasses.replace(est, verdict=Verdict.HIDDEN, cost=0.070, alternatives=())
+    far = dataclasses.replace(est, verdict=Verdict.OK, cost=0.090, tip_position=est.tip_position + [0.016, 0, 0])
+    out = _second_look(first, far, folded=False)
+    assert out.verdict is Verdict.AMBIGUOUS and out.cost == 0.070
+    assert len(out.alternatives) == 1 and np.allclose(out.alternatives[0].tip_position, far.tip_position)
+    near = dataclasses.replace(far, tip_position=est.tip_position + [0.004, 0, 0])
+    assert _second_look(first, near, folded=False) is near
+    worse = dataclasses.replace(far, cost=0.200)
+    assert _second_look(first, worse, folded=False) is first
+    better = dataclasses.replace(far, cost=0.050)
+    assert _second_look(first, better, folded=False) is better
