@@ -265,23 +265,6 @@ def test_an_end_hooked_over_the_body_is_located_by_the_part_of_its_edge_against_
     assert not _on_outline(View(cam, body.astype(bool)), body, (0, 0), out_over)
 
 
-def test_a_sliver_locates_the_end_only_where_it_ends_with_the_model():
-    """An end seen edge-on: the gap along the sliver between its end and the model's."""
-    from tapecell.estimator.verdict import SLIVER_END_PX, sliver_end_gap
-
-    observed = np.zeros((100, 100), np.uint8)
-    observed[20:80, 49:51] = 1                    # a 2 px sliver ending at v = 20
-    model = np.zeros_like(observed)
-    model[21:80, 49:51] = 1                       # the model ends with it
-    tip, trunk = np.array([50.0, 21.0]), np.array([0.0, -10.0])   # pointing up, past the tip
-    assert sliver_end_gap(observed, model, tip, trunk) <= SLIVER_END_PX
-    short = np.zeros_like(observed)
-    short[35:80, 49:51] = 1                       # the model ends 15 px short
-    assert sliver_end_gap(observed, short, np.array([50.0, 35.0]), trunk) > SLIVER_END_PX
-    # Seen end-on (the trunk projects to a point): the sliver cannot tell.
-    assert sliver_end_gap(observed, model, tip, np.array([0.5, 0.5])) == np.inf
-
-
 def test_an_end_short_of_the_image_border_is_located_one_at_the_border_is_not():
     """The tape's continuation past the tip would leave the image: where the view shows
     background between the tip and the border the silhouette's end is the tape's; where the
