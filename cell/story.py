@@ -45,6 +45,8 @@ from . import recording as rec
 from .kinematics import DH_A, DH_D, dh_frames
 
 TIMELINE = "step"
+HIDDEN_SCALE = 1e-6
+"""Scale of a body not shown at a step (a tool not mounted): a 100 mm tool becomes 0.1 um."""
 
 
 @dataclass(frozen=True)
@@ -310,8 +312,9 @@ class Recorder:
         index = [rr.TimeColumn(TIMELINE, sequence=steps), rr.TimeColumn("sim_time", duration=times)]
         poses = np.stack([s.world_from_body for s in samples])          # (m, k, 4, 4)
         for j, name in enumerate(names):
-            # A hidden body (a tool not mounted) is scaled to nothing.
-            scale = np.array([[0.0] * 3 if name in s.hidden else [1.0] * 3 for s in samples])
+            # A hidden body (a tool not mounted) is scaled to next to nothing (a scale of 0
+            # is an invalid transform to the viewer, which then shows an error).
+            scale = np.array([[HIDDEN_SCALE] * 3 if name in s.hidden else [1.0] * 3 for s in samples])
             self.stream.send_columns(f"world/bodies/{name}", indexes=index, columns=rr.Transform3D.columns(
                 translation=poses[:, j, :3, 3], mat3x3=poses[:, j, :3, :3], scale=scale))
         self.stream.send_columns("arm/joints", indexes=index,
