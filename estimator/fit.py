@@ -178,8 +178,8 @@ def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
     that explains the views better; an "ok" second look that explains them nearly as well
     (the ambiguity margin) only where its tip is within DISTINCT_TIP_M of the first's (the
     same hypothesis, now located). Further away, the first look, which explains the views
-    better and did not locate the end there, stands as the estimate, ambiguous, the second
-    its alternative (a wrong "ok" 16.7 mm off on a fresh synthetic capture with the part in
+    better and did not locate the end there, stands as the estimate, ambiguous (or poor_fit,
+    its reason kept), the second its alternative (a wrong "ok" 16.7 mm off on a fresh synthetic capture with the part in
     front: the first look's shape, 0.8 mm off, was hidden and cost less)."""
     if folded or second.cost < first.cost:
         return second
@@ -191,6 +191,8 @@ def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
     alternatives = tuple(first.alternatives)
     if all(np.linalg.norm(a.tip_position - second.tip_position) > DISTINCT_TIP_M for a in alternatives):
         alternatives = (Alternative(second.cost, second.tip_position, second.tip_rotation, second.angles),) + alternatives
+    if first.verdict is Verdict.POOR_FIT:
+        return dataclasses.replace(first, alternatives=alternatives)   # its reason stands (the needle reads it)
     return dataclasses.replace(first, verdict=Verdict.AMBIGUOUS, alternatives=alternatives,
                                verdict_reason=(f"a shape with its tip {1e3 * d:.0f} mm away explains the views nearly "
                                                f"as well (cost {second.cost:.3f} vs {first.cost:.3f}) and locates "

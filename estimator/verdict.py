@@ -78,6 +78,9 @@ BEYOND_M = (0.003, 0.006)
 able to see: where the tape's continuation would be hidden by a scene box, lie on ignored
 pixels or leave the image, the silhouette may end at that occluder's edge, not at the tape's
 end (a wrong "ok" 13 mm off: a shell tape whose end went on behind the part)."""
+CONTINUATION_GAP_PX = 3.0
+"""... and it must lie this many pixels more than BOX_OUTLINE_PX clear of every scene box's
+projected outline, and this far inside the image."""
 CONTINUATION_STEPS = 12
 """Points per line, evenly up to BEYOND_M's last, at which a view is asked whether it shows
 background past the tip before an occluder."""
@@ -322,7 +325,8 @@ def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], point
     observed background, or a stretch of it from a corner, at least EDGE_RUN_FRACTION of
     its width, lies within EDGE_RUN_PX of it and of observed tape, on the outline (an end
     hooked over the body: part of its edge is seen against the background, the rest over
-    the body). (A tape seen end-on puts its
+    the body); the stretch is tested at its sample points only (with 9 points: the corner
+    and the point an eighth of the width in). (A tape seen end-on puts its
     corners near the outline and its middle inside the silhouette, where nothing locates
     the end.) A point within BOX_OUTLINE_PX of a scene box's projected outline does not
     count (the silhouette's edge there may be the box's, where the tape goes behind it: a
@@ -390,11 +394,18 @@ def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.nda
         line = tip_position + a + np.outer(steps, tip_rotation[:, 0])
         seen = _visible(view, line, boxes)
         uv = view.camera.project(line)
-        for ok, (u, v) in zip(seen, uv):
+        # Background a few pixels short of a box's outline may be the box hiding the tape
+        # (segmentation loses a pixel or two at an occluding edge; the box's pose and the
+        # calibration are known to a few pixels): only background clear of every box's
+        # outline and of the image's border counts.
+        clear = _box_outline_px(view, boxes, uv) >= BOX_OUTLINE_PX + CONTINUATION_GAP_PX
+        clear &= ((uv[:, 0] >= CONTINUATION_GAP_PX) & (uv[:, 0] < view.camera.width - CONTINUATION_GAP_PX)
+                  & (uv[:, 1] >= CONTINUATION_GAP_PX) & (uv[:, 1] < view.camera.height - CONTINUATION_GAP_PX))
+        for ok, free, (u, v) in zip(seen, clear, uv):
             if not ok:
                 break
             x, y = int(round(u)) - origin[0], int(round(v)) - origin[1]
-            if not (0 <= x < w and 0 <= y < h) or observed[y, x] == 0:
+            if free and (not (0 <= x < w and 0 <= y < h) or observed[y, x] == 0):
                 ended += 1
                 break
     return ended >= 2

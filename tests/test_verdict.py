@@ -274,11 +274,11 @@ def test_an_end_short_of_the_image_border_is_located_one_at_the_border_is_not():
 
     cam = Camera("c", 200, 200, np.array([[1000.0, 0, 100], [0, 1000.0, 100], [0, 0, 1]]), np.zeros(5),
                  np.eye(3), np.zeros(3))
-    # 1 px per mm at z = 1 m: the tip on the row v = 196, the tape hanging down the image (+y).
-    tip = np.array([0.0, 0.096, 1.0])
+    # 1 px per mm at z = 1 m: the tip on the row v = 194, the tape hanging down the image (+y).
+    tip = np.array([0.0, 0.094, 1.0])
     tip_rotation = np.column_stack([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
     ends_short = np.zeros((200, 200), np.uint8)
-    ends_short[100:197, 85:116] = 1
+    ends_short[100:195, 85:116] = 1
     view = View(cam, ends_short.astype(bool))
     assert _continuation_visible(view, [], tip, tip_rotation, 0.030, ends_short, (0, 0))
     at_border = np.zeros((200, 200), np.uint8)
@@ -305,3 +305,33 @@ def test_a_second_look_does_not_trade_a_better_unsure_shape_for_a_worse_ok_one()
     assert _second_look(first, worse, folded=False) is first
     better = dataclasses.replace(far, cost=0.050)
     assert _second_look(first, better, folded=False) is better
+    # A poor fit keeps its verdict and reason (an episode's needle reads it), the far "ok"
+    # shape added as its alternative.
+    poor = dataclasses.replace(first, verdict=Verdict.POOR_FIT, verdict_reason="view 0 shows tape past the end")
+    out = _second_look(poor, far, folded=False)
+    assert out.verdict is Verdict.POOR_FIT and out.verdict_reason == poor.verdict_reason
+    assert len(out.alternatives) == 1
+
+
+def test_background_just_short_of_a_box_does_not_locate_the_end():
+    """The tape's continuation would go behind a box: a gap of a pixel or two between the
+    silhouette's end and the box's projected outline (segmentation at an occluding edge) is
+    no background seen; a clear gap is."""
+    from tapecell.estimator import Camera
+    from tapecell.estimator.verdict import _continuation_visible
+
+    cam = Camera("c", 400, 400, np.array([[1000.0, 0, 200], [0, 1000.0, 200], [0, 0, 1]]), np.zeros(5),
+                 np.eye(3), np.zeros(3))
+    tip_rotation = np.column_stack([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    # A box in front of the tape (z 0.5-0.6 m) whose top edge projects on the row v = 205.
+    box = Box("part", np.array([0.0, 0.05 + 0.0025, 0.55]), np.array([0.2, 0.1 + 0.005, 0.1]), np.eye(3))
+    top = box.center[1] - box.size[1] / 2
+    edge_row = 1000.0 * top / (box.center[2] - box.size[2] / 2) + 200.0
+    tip = np.array([0.0, 0.0, 1.0])
+    for gap, located in ((1, False), (2, False), (12, True)):
+        v_tip = edge_row - gap
+        tip[1] = (v_tip - 200.0) / 1000.0
+        mask = np.zeros((400, 400), np.uint8)
+        mask[100:int(round(v_tip)) + 1, 185:216] = 1
+        view = View(cam, mask.astype(bool))
+        assert _continuation_visible(view, [box], tip, tip_rotation, 0.030, mask, (0, 0)) is located, gap
