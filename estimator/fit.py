@@ -179,8 +179,9 @@ def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
     (the ambiguity margin) only where its tip is within DISTINCT_TIP_M of the first's (the
     same hypothesis, now located). Further away, the first look, which explains the views
     better and did not locate the end there, stands as the estimate, ambiguous (or poor_fit,
-    its reason kept), the second its alternative (a wrong "ok" 16.7 mm off on a fresh synthetic capture with the part in
-    front: the first look's shape, 0.8 mm off, was hidden and cost less)."""
+    its reason kept), the second its alternative (a wrong "ok" 16.7 mm off on a fresh
+    synthetic capture with the part in front: the first look's shape, 0.8 mm off, was
+    hidden and cost less)."""
     if folded or second.cost < first.cost:
         return second
     if not second.actionable or not is_close_alternative(second.cost, first.cost):

@@ -41,6 +41,7 @@ from .capture import View
 from .occlusion import hidden
 from .result import Verdict
 from .scene import Box
+from .views import box_outline_px
 
 POOR_OFFSET_PX = 3.0
 """Mean boundary distance [px] in a view above which the fit does not explain it."""
@@ -226,40 +227,48 @@ def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
     direction of the tape's last centimetre towards the tip), the farthest distance from the
     tip of its pixels ahead of the tip along it: how far the tape goes on past the model's
     end (a region beside the end, where a plate cuts across a curl of the body, does not
-    count for its length behind the tip).
-    uint8 0/1 crops alike. (The reverse, model over background there, was measured and
-    dropped: an edge-on end is a thin line whose offset of a few pixels leaves 40-70 px
+    count for its length behind the tip). uint8 0/1 crops alike. See :func:`unexplained`."""
+    regions, ahead = unexplained(observed, model, tip_px, trunk_px)
+    return regions if trunk_px is None else ahead
+
+
+def unexplained(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
+                trunk_px: np.ndarray | None = None) -> tuple[float, float]:
+    """Both measures of :func:`unexplained_px` in one pass: (the longest region's bounding
+    box side, how far tape goes on ahead of the tip along ``trunk_px``) [px]; the second is
+    the first where the trunk's direction is unknown (None, or an end seen end-on: every
+    region counts as past the end). (The reverse, model over background there, was measured
+    and dropped: an edge-on end is a thin line whose offset of a few pixels leaves 40-70 px
     long slivers on good fits, and it caught no wrong fit.)"""
     if not np.all(np.isfinite(tip_px)):
-        return 0.0
+        return 0.0, 0.0
     k = np.ones((2 * UNEXPLAINED_MARGIN_PX + 1,) * 2, np.uint8)
     h, w = observed.shape
     u, v = int(round(tip_px[0])), int(round(tip_px[1]))
     r = END_WINDOW_PX
     a0, a1, b0, b1 = max(0, v - r), min(h, v + r + 1), max(0, u - r), min(w, u + r + 1)
     if a1 <= a0 or b1 <= b0:
-        return 0.0
+        return 0.0, 0.0
     extra = cv2.bitwise_and(observed, cv2.bitwise_not(cv2.dilate(model, k)) & 1)
     if cv2.countNonZero(extra[a0:a1, b0:b1]) == 0:
-        return 0.0
+        return 0.0, 0.0
     _, labels, stats, _ = cv2.connectedComponentsWithStats(extra, connectivity=8)
     along = None
     if trunk_px is not None and np.all(np.isfinite(trunk_px)) and np.linalg.norm(trunk_px) >= MIN_TRUNK_PX:
         along = np.asarray(trunk_px, float) / np.linalg.norm(trunk_px)
-    best = 0.0
+    longest = ahead = 0.0
     for label in np.unique(labels[a0:a1, b0:b1]):
         x, y, bw, bh, area = stats[label]
         if not label or area < UNEXPLAINED_MIN_AREA_PX:
             continue
-        if along is None:
-            best = max(best, float(max(bw, bh)))
-            continue
-        ys, xs = np.nonzero(labels[y:y + bh, x:x + bw] == label)
-        d = np.column_stack([xs + x - tip_px[0], ys + y - tip_px[1]])
-        ahead = d[d @ along >= 0.0]
-        if len(ahead):
-            best = max(best, float(np.linalg.norm(ahead, axis=1).max()))
-    return best
+        longest = max(longest, float(max(bw, bh)))
+        if along is not None:
+            ys, xs = np.nonzero(labels[y:y + bh, x:x + bw] == label)
+            d = np.column_stack([xs + x - tip_px[0], ys + y - tip_px[1]])
+            d = d[d @ along >= 0.0]
+            if len(d):
+                ahead = max(ahead, float(np.linalg.norm(d, axis=1).max()))
+    return longest, (longest if along is None else ahead)
 
 
 THIN_END_PX = 2.0
@@ -295,22 +304,6 @@ def _near_background(observed: np.ndarray, x: int, y: int, r: int) -> bool:
     return bool((observed[y0:y1, x0:x1] == 0).any())
 
 
-def _box_outline_px(view: View, boxes: Sequence[Box], uv: np.ndarray) -> np.ndarray:
-    """(k,) distance [px] from each image point ``uv`` (k, 2) to the nearest scene box's
-    projected outline (inf without boxes): where a silhouette's edge may be the box's."""
-    out = np.full(len(uv), np.inf)
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
-    for box in boxes:
-        corners = box.center + (signs * box.half) @ box.rotation.T
-        if np.any(view.camera.to_camera(corners)[:, 2] <= 0):
-            continue
-        hull = cv2.convexHull(view.camera.project(corners).astype(np.float32))
-        for k, (u, v) in enumerate(uv):
-            if np.isfinite(u) and np.isfinite(v):
-                out[k] = min(out[k], abs(cv2.pointPolygonTest(hull, (float(u), float(v)), True)))
-    return out
-
-
 def _near_tape(observed: np.ndarray, x: int, y: int, r: int) -> bool:
     """Is there observed tape within ``r`` px (a square) of crop pixel (x, y)?"""
     h, w = observed.shape
@@ -334,15 +327,14 @@ def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], point
     within EDGE_RUN_PX more."""
     uv = view.camera.project(points)
     k = len(points)
-    near_box = _box_outline_px(view, boxes, uv) if boxes else np.full(k, np.inf)
+    near_box = box_outline_px(view.camera, boxes, uv)
     loose, tight = [], []
-    for u, v in uv:
+    for (u, v), box in zip(uv, near_box):
         if not (np.isfinite(u) and np.isfinite(v)):
             loose.append(False)
             tight.append(False)
             continue
         x, y = int(round(u)) - origin[0], int(round(v)) - origin[1]
-        box = near_box[len(loose)]
         loose.append(box >= BOX_OUTLINE_PX and _near_background(observed, x, y, EDGE_PX))
         # On the outline: background and observed tape both within EDGE_RUN_PX (a model
         # edge out over the background is no edge seen).
@@ -388,20 +380,22 @@ def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.nda
     if observed is None:
         return False
     steps = np.linspace(0.0, BEYOND_M[-1], CONTINUATION_STEPS + 1)[1:]
+    lines = (tip_position + across[:, None, :] + steps[None, :, None] * tip_rotation[:, 0]).reshape(-1, 3)
+    seen = _visible(view, lines, boxes).reshape(len(across), -1)
+    uv = view.camera.project(lines)
+    # Background a few pixels short of a box's outline may be the box hiding the tape
+    # (segmentation loses a pixel or two at an occluding edge; the box's pose and the
+    # calibration are known to a few pixels): only background clear of every box's outline
+    # and of the image's border counts.
+    clear = box_outline_px(view.camera, boxes, uv) >= BOX_OUTLINE_PX + CONTINUATION_GAP_PX
+    clear &= ((uv[:, 0] >= CONTINUATION_GAP_PX) & (uv[:, 0] < view.camera.width - CONTINUATION_GAP_PX)
+              & (uv[:, 1] >= CONTINUATION_GAP_PX) & (uv[:, 1] < view.camera.height - CONTINUATION_GAP_PX))
+    clear = clear.reshape(len(across), -1)
+    uv = uv.reshape(len(across), -1, 2)
     h, w = observed.shape
     ended = 0
-    for a in across:
-        line = tip_position + a + np.outer(steps, tip_rotation[:, 0])
-        seen = _visible(view, line, boxes)
-        uv = view.camera.project(line)
-        # Background a few pixels short of a box's outline may be the box hiding the tape
-        # (segmentation loses a pixel or two at an occluding edge; the box's pose and the
-        # calibration are known to a few pixels): only background clear of every box's
-        # outline and of the image's border counts.
-        clear = _box_outline_px(view, boxes, uv) >= BOX_OUTLINE_PX + CONTINUATION_GAP_PX
-        clear &= ((uv[:, 0] >= CONTINUATION_GAP_PX) & (uv[:, 0] < view.camera.width - CONTINUATION_GAP_PX)
-                  & (uv[:, 1] >= CONTINUATION_GAP_PX) & (uv[:, 1] < view.camera.height - CONTINUATION_GAP_PX))
-        for ok, free, (u, v) in zip(seen, clear, uv):
+    for line_seen, line_clear, line_uv in zip(seen, clear, uv):
+        for ok, free, (u, v) in zip(line_seen, line_clear, line_uv):
             if not ok:
                 break
             x, y = int(round(u)) - origin[0], int(round(v)) - origin[1]
@@ -431,19 +425,21 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
             for s_, v, o, xy in zip(seen, views, observed, origins)]
     # Observed tape near the tip that the model leaves unexplained, per view that sees the
     # end: all of it, and what of it goes on past the tip.
-    extra, beyond = [], []
+    back = tip_position - 0.010 * tip_rotation[:, 0]
+    extra, beyond, tips = [], [], []
     for s_, v, o, m, xy in zip(seen, views, observed, models, origins):
-        uv = v.camera.project(np.vstack([tip_position, tip_position - 0.010 * tip_rotation[:, 0]]))
-        tip_px = uv[0] - np.asarray(xy, float)
-        extra.append(unexplained_px(o, m, tip_px) if s_ else 0.0)
-        beyond.append(unexplained_px(o, m, tip_px, uv[0] - uv[1]) if s_ else 0.0)
+        uv = v.camera.project(np.vstack([tip_position, back]))
+        tips.append(uv[0])
+        regions, ahead = unexplained(o, m, uv[0] - np.asarray(xy, float), uv[0] - uv[1]) if s_ else (0.0, 0.0)
+        extra.append(regions)
+        beyond.append(ahead)
     # A view locates the end (counts towards the two) where nothing near it is left
     # unexplained and it does not see the end edge-on as a sliver; a view that sees the end
     # but does not locate it is still held against the model below. (A sliver whose end
     # coincides with the model's was tried as locating the end: on fresh shell captures it
     # let through an "ok" 81 mm off.)
-    locates = [s_ and x <= LOCATE_UNEXPLAINED_PX and not _thin_at(o, xy, v.camera.project(tip_position[None])[0])
-               for s_, x, v, o, xy in zip(seen, extra, views, observed, origins)]
+    locates = [s_ and x <= LOCATE_UNEXPLAINED_PX and not _thin_at(o, xy, tip)
+               for s_, x, o, xy, tip in zip(seen, extra, observed, origins, tips)]
     ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(locates), best_cost, tip_position, alternatives)
     if verdict is not Verdict.POOR_FIT:

@@ -137,15 +137,25 @@ def prepare(view: View, boxes: tuple = (), cfg: FitConfig = DEFAULT) -> Field:
 
 def _on_box_outline(camera: Camera, boxes, points: np.ndarray, cfg: FitConfig) -> np.ndarray:
     """(P,) which outline points (P, 2) [px] lie on the projected outline of a box."""
-    out = np.zeros(len(points), bool)
-    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+    return box_outline_px(camera, boxes, points) < cfg.box_edge_px
+
+
+_BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+
+
+def box_outline_px(camera: Camera, boxes, points: np.ndarray) -> np.ndarray:
+    """(P,) distance [px] from each image point (P, 2) to the nearest scene box's projected
+    outline (the convex hull of its projected corners; inf without boxes, or for a box with
+    a corner behind the camera, or for a point that is not finite)."""
+    out = np.full(len(points), np.inf)
     for box in boxes:
-        corners = box.center + (signs * box.half) @ box.rotation.T
+        corners = box.center + (_BOX_SIGNS * box.half) @ box.rotation.T
         if np.any(camera.to_camera(corners)[:, 2] <= 0):
             continue
         hull = cv2.convexHull(camera.project(corners).astype(np.float32))
-        d = np.array([cv2.pointPolygonTest(hull, (float(x), float(y)), True) for x, y in points])
-        out |= np.abs(d) < cfg.box_edge_px
+        for k, (u, v) in enumerate(points):
+            if np.isfinite(u) and np.isfinite(v):
+                out[k] = min(out[k], abs(cv2.pointPolygonTest(hull, (float(u), float(v)), True)))
     return out
 
 

@@ -224,7 +224,6 @@ def test_a_low_hanging_tip_is_reached_where_the_gripper_clears_the_table_and_the
     # part, with the cell file's 5 mm clearance, finds one (from the side, pitched, through
     # a pose above the pre-grasp).
     from tapecell.cell.config import load_cell_config
-    from tapecell.cell.safety import check_wrist_clear
 
     limits = SafetyLimits.from_cell(load_cell_config())
     angles = np.zeros((5, 3))
@@ -241,13 +240,7 @@ def test_a_low_hanging_tip_is_reached_where_the_gripper_clears_the_table_and_the
     with pytest.raises(PlanRefused):
         plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, q_start=REFERENCE_JOINTS)
     plan = plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
-    shape = GRIPPER.shape()
-    for w in plan.waypoints:
-        F = pose6_to_matrix(w.flange_pose)
-        pts = (F[:3, :3] @ shape.points_flange.T).T + F[:3, 3]
-        for ob in limits.obstacles:
-            assert np.min(ob.distance(pts) - shape.radii) >= limits.clearance - 1e-9, (w.name, ob.name)
-        check_wrist_clear(limits, w.q[None], w.name)
+    _assert_waypoints_clear(plan, GRIPPER.shape(), limits)
     assert plan.steps[1] == Step("move_joints", "above") and plan.steps[2] == Step("move_joints", "pregrasp")
     # Executed on the fake arm through the same checks.
     arm = FakeArm(q0=REFERENCE_JOINTS)
@@ -267,6 +260,19 @@ def test_a_tip_on_the_tables_surface_is_refused_as_a_collision():
         plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
 
 
+def _assert_waypoints_clear(plan, shape, limits):
+    """Every waypoint keeps the gripper's shape and the wrist the clearance from every
+    obstacle."""
+    from tapecell.cell.safety import check_wrist_clear
+
+    for w in plan.waypoints:
+        F = pose6_to_matrix(w.flange_pose)
+        pts = (F[:3, :3] @ shape.points_flange.T).T + F[:3, 3]
+        for ob in limits.obstacles:
+            assert np.min(ob.distance(pts) - shape.radii) >= limits.clearance - 1e-9, (w.name, ob.name)
+        check_wrist_clear(limits, w.q[None], w.name)
+
+
 def _distance_to_polyline(p, line):
     d = []
     for a, b in zip(line[:-1], line[1:]):
@@ -283,7 +289,7 @@ def test_an_end_hanging_beside_the_parts_face_is_taken_further_back_from_above(m
     # up the hanging end, the near finger passes over the part's top, 5 mm clear.
     from tapecell.cell import planner
     from tapecell.cell.config import load_cell_config
-    from tapecell.cell.safety import check_linear_move, check_wrist_clear
+    from tapecell.cell.safety import check_linear_move
 
     cfg = load_cell_config()
     limits = SafetyLimits.from_cell(cfg)
@@ -312,12 +318,7 @@ def test_an_end_hanging_beside_the_parts_face_is_taken_further_back_from_above(m
     # Every pose and every straight move keeps the 5 mm clearance from the part and the table.
     shape = gripper.shape()
     points = gripper.check_points_flange()
-    for w in plan.waypoints:
-        F = pose6_to_matrix(w.flange_pose)
-        pts = (F[:3, :3] @ shape.points_flange.T).T + F[:3, 3]
-        for ob in limits.obstacles:
-            assert np.min(ob.distance(pts) - shape.radii) >= limits.clearance - 1e-9, (w.name, ob.name)
-        check_wrist_clear(limits, w.q[None], w.name)
+    _assert_waypoints_clear(plan, shape, limits)
     linear = [s.waypoint for s in plan.steps if s.action == "move_linear"]
     previous = "pregrasp"
     for name in linear:
