@@ -94,6 +94,10 @@ class FitConfig:
     wide_offset_px: float = 1.5
     """... or when a view's mean boundary distance (its XOR over its outline length) is above
     this [px]: a view the first search's winner does not explain (about 1 in 10 good fits)."""
+    wide_misfit_px: float = 4.5
+    """... or when the thickest region where a view and the model disagree is more than
+    twice this [px] thick (the largest distance inside it to its edge): a fit that explains
+    a view well on average but misses part of it (the search's winner on a wrong branch)."""
     wide_beam: int = 8
     """Partial chains kept per node in the wide search."""
     thorough_beam: int = 24
