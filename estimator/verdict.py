@@ -17,8 +17,9 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   within ``EDGE_RUN_PX``: a tip over the tape's own body is not located by that
   silhouette); the tape's continuation past the tip would be seen, or background is seen
   before the occluder; at most ``LOCATE_UNEXPLAINED_PX`` of observed tape near the tip is
-  unexplained; and it does not see the end edge-on as a sliver (``THIN_END_PX``). Fewer
-  than two such views: ``hidden``.
+  unexplained; and it does not see the end edge-on as a sliver (``THIN_END_PX``), unless
+  the model explains that whole view (``SLIVER_STRAY_PX``) and another view locates the
+  end without being a sliver. Fewer than two such views: ``hidden``.
 - Can the end's depth be told? The cameras that see it must look at it from directions at
   least ``MIN_PARALLAX_DEG`` apart, else ``ambiguous``.
 - Does a distinct shape explain the views nearly as well? An alternative whose tip is more
@@ -294,6 +295,22 @@ def _thin_at(observed: np.ndarray, origin: tuple[int, int], tip_px: np.ndarray) 
     return float(half.max()) <= THIN_END_PX
 
 
+SLIVER_STRAY_PX = 2
+"""A sliver view (see THIN_END_PX) locates the end only where the model explains the whole
+view: at most this many observed pixels anywhere lie farther than UNEXPLAINED_MARGIN_PX from
+the model's silhouette (segmentation breaks a thinning sliver into dots, and a wrong "ok" 81
+mm off had its model end where the dots began, the tape going on as dots for 270 px), and
+another view locates the end without being a sliver."""
+
+
+def _explained(observed: np.ndarray, model: np.ndarray) -> bool:
+    """Is every observed pixel but SLIVER_STRAY_PX within UNEXPLAINED_MARGIN_PX of the
+    model's silhouette? uint8 0/1 crops alike."""
+    k = np.ones((2 * UNEXPLAINED_MARGIN_PX + 1,) * 2, np.uint8)
+    stray = cv2.bitwise_and(observed, cv2.bitwise_not(cv2.dilate(model, k)) & 1)
+    return cv2.countNonZero(stray) <= SLIVER_STRAY_PX
+
+
 def _near_background(observed: np.ndarray, x: int, y: int, r: int) -> bool:
     """Is there observed background within ``r`` px (a square) of crop pixel (x, y)? (The
     crop's outside counts as background.)"""
@@ -438,8 +455,11 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     # but does not locate it is still held against the model below. (A sliver whose end
     # coincides with the model's was tried as locating the end: on fresh shell captures it
     # let through an "ok" 81 mm off.)
-    locates = [s_ and x <= LOCATE_UNEXPLAINED_PX and not _thin_at(o, xy, tip)
-               for s_, x, o, xy, tip in zip(seen, extra, observed, origins, tips)]
+    candidates = [s_ and x <= LOCATE_UNEXPLAINED_PX for s_, x in zip(seen, extra)]
+    thin = [c and _thin_at(o, xy, tip) for c, o, xy, tip in zip(candidates, observed, origins, tips)]
+    locates = [c and not t for c, t in zip(candidates, thin)]
+    if any(locates):
+        locates = [lo or (t and _explained(o, m)) for lo, t, o, m in zip(locates, thin, observed, models)]
     ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(locates), best_cost, tip_position, alternatives)
     if verdict is not Verdict.POOR_FIT:
