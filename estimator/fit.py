@@ -221,7 +221,8 @@ def _garbage(capture: Capture, faults: list, method: str, start: float, config: 
     bad = {k for k, _ in faults}
     rest = [v for k, v in enumerate(capture.views) if k not in bad]
     if rest:
-        est = estimate(dataclasses.replace(capture, views=rest), method, config=config)
+        # Its verdict is poor_fit whatever the other views' fit says: no second look.
+        est = estimate(dataclasses.replace(capture, views=rest), method, config=config, second_look=False)
         angles, tip = est.angles, (est.tip_position, est.tip_rotation)
     else:
         angles = np.zeros((capture.tape.n, 3))
@@ -236,7 +237,7 @@ def _garbage(capture: Capture, faults: list, method: str, start: float, config: 
 
 
 def estimate(capture: Capture, method: str = "default", callback: Callback | None = None,
-             thorough: bool = False, config: FitConfig = DEFAULT) -> Estimate:
+             thorough: bool = False, config: FitConfig = DEFAULT, second_look: bool = True) -> Estimate:
     """Fit the plate chain to ``capture``'s silhouettes.
 
     method: "default" (ours) or "paper" (the reference reproduction).
@@ -244,6 +245,8 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     silhouette cost (eq. 11) of that iterate; for the default method after the fit (the
     winner's iterations, costed once the clock has stopped), for the paper's method live
     (the objective of the node being optimised).
+    second_look: an unsure estimate (and an "ok" fold) gets a second, thorough look before
+    the answer (below); False answers from the first look.
     Returns an :class:`Estimate`; ``time_s`` is the fitting time alone.
     """
     from .paper import fit_paper
@@ -300,7 +303,7 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     # both looks counts.
     folded = verdict is Verdict.OK and float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN)
-    if method == "default" and not thorough and (folded or unsure):
+    if method == "default" and second_look and not thorough and (folded or unsure):
         second = estimate(capture, method, thorough=True, config=config)
         return dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
     return est

@@ -16,7 +16,8 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   tip edge within ``EDGE_PX`` of observed background, or a stretch of it from a corner
   within ``EDGE_RUN_PX``: a tip over the tape's own body is not located by that
   silhouette); the tape's continuation past the tip would be seen, or background is seen
-  before the occluder; at most ``LOCATE_UNEXPLAINED_PX`` of observed tape near the tip is
+  before the occluder; no observed tape leaves the image near the tip edge
+  (``BORDER_CLEAR_PX``); at most ``LOCATE_UNEXPLAINED_PX`` of observed tape near the tip is
   unexplained; and it does not see the end edge-on as a sliver (``THIN_END_PX``), unless
   the model explains that whole view (``SLIVER_STRAY_PX``) and another view locates the
   end without being a sliver. Fewer than two such views: ``hidden``.
@@ -380,6 +381,37 @@ def _visible(view: View, points: np.ndarray, boxes: Sequence[Box]) -> np.ndarray
     return ok
 
 
+BORDER_CLEAR_PX = 20.0
+"""A view does not locate the end where observed tape on the image's border lies within this
+many pixels of the tip edge's projection: the tape leaves the image there and may go on out
+of view (a wrong "ok" 49 mm off on a fresh shell capture: the tape left all three images at
+the bottom, and the model's last plate, turned along the outline, ended at the border)."""
+
+
+def _clear_of_border(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray) -> bool:
+    """Is no observed tape pixel on the image's border within BORDER_CLEAR_PX of the
+    projections of ``points`` (k, 3)? ``observed``: the view's silhouette crop whose top-left
+    pixel is ``origin``."""
+    h, w = observed.shape
+    x0, y0 = origin
+    cam = view.camera
+    border = []
+    for on_border, rows, cols in ((y0 == 0, slice(0, 1), slice(None)), (y0 + h >= cam.height, slice(h - 1, h), slice(None)),
+                                  (x0 == 0, slice(None), slice(0, 1)), (x0 + w >= cam.width, slice(None), slice(w - 1, w))):
+        if on_border:
+            ys, xs = np.nonzero(observed[rows, cols])
+            border.append(np.column_stack([xs + (cols.start or 0) + x0, ys + (rows.start or 0) + y0]))
+    border = np.vstack(border) if border else np.zeros((0, 2))
+    if not len(border):
+        return True
+    uv = cam.project(points)
+    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    if not len(uv):
+        return False
+    d = np.linalg.norm(border[:, None, :] - uv[None, :, :], axis=2)
+    return bool(d.min() > BORDER_CLEAR_PX)
+
+
 def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.ndarray,
                            tip_rotation: np.ndarray, width: float, observed: np.ndarray | None = None,
                            origin: tuple[int, int] = (0, 0)) -> bool:
@@ -439,7 +471,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
     seen = [s_ and _on_outline(v, o, xy, edge, boxes) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
-            for s_, v, o, xy in zip(seen, views, observed, origins)]
+            and _clear_of_border(v, o, xy, edge) for s_, v, o, xy in zip(seen, views, observed, origins)]
     # Observed tape near the tip that the model leaves unexplained, per view that sees the
     # end: all of it, and what of it goes on past the tip.
     back = tip_position - 0.010 * tip_rotation[:, 0]

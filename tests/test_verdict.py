@@ -373,3 +373,45 @@ def test_sliver_views_on_simulated_captures():
     bad = load_capture(DATA / "sim-shell-c2-550008")
     est = estimate(bad)
     assert est.verdict is not Verdict.OK, f"ok at {_tip_mm(bad, est):.1f} mm"
+
+
+def test_an_end_where_the_tape_leaves_the_image_is_not_located():
+    """verdict._clear_of_border: observed tape on the image's border within 20 px of the tip
+    edge: the tape may go on out of view, so that view does not locate the end; the same end
+    far from the border, or tape that leaves the image far from it, does."""
+    from tapecell.estimator import Camera
+    from tapecell.estimator.verdict import _clear_of_border
+
+    cam = Camera("c", 200, 200, np.array([[100.0, 0, 100], [0, 100.0, 100], [0, 0, 1]]), np.zeros(5),
+                 np.eye(3), np.zeros(3))
+    # A band leaving the image at the bottom; the crop is its rows 120..199, columns 80..119.
+    observed = np.zeros((80, 40), np.uint8)
+    observed[:, 10:30] = 1
+    view = View(cam, np.zeros((200, 200), bool))
+    # The tip edge's points at pixel rows 190 (near the border) and 130 (clear of it), z = 1.
+    near = np.array([[-0.1, 0.9, 1.0], [0.0, 0.9, 1.0], [0.1, 0.9, 1.0]])
+    far = near - np.array([0.0, 0.6, 0.0])
+    assert not _clear_of_border(view, observed, (80, 120), near)
+    assert _clear_of_border(view, observed, (80, 120), far)
+    # The same crop not on the image's border (its rows 100..179): nothing leaves the image.
+    assert _clear_of_border(view, observed, (80, 100), near - np.array([0.0, 0.2, 0.0]))
+
+
+def test_a_garbage_view_is_refused_without_a_second_look(monkeypatch):
+    """A white mask makes the estimate poor_fit whatever the other view's fit says: that fit
+    gets no second, thorough look (it cannot change the verdict, and it doubled the time)."""
+    from tapecell.estimator import fit
+
+    looks = []
+    real = fit.fit_default
+
+    def counted(capture, callback=None, thorough=False, cfg=fit.DEFAULT):
+        looks.append(thorough)
+        return real(capture, callback, thorough, cfg)
+
+    monkeypatch.setattr(fit, "fit_default", counted)
+    capture = make_capture(4200, SyntheticOptions(cameras=2))
+    v = capture.views[1]
+    est = estimate(dataclasses.replace(capture, views=[capture.views[0], View(v.camera, np.ones_like(v.mask))]))
+    assert est.verdict is Verdict.POOR_FIT
+    assert looks == [False]
