@@ -116,3 +116,16 @@ def test_ik_memo_gives_the_same_solutions():
     assert ur5e.jacobian_memo_stats[0] >= 30
     for a, b in zip(with_memo, solve_line(False)):
         assert np.array_equal(a, b)
+
+
+def test_tool_offsets_are_the_cell_files_and_read_only(cell):
+    from tapecell.sim.arm import SimArm
+
+    arm = SimArm(cell, tool="gripper")
+    for tool in ("flange", "gripper", "needle", "plate"):
+        T = arm.flange_from_tcp(tool)
+        assert np.array_equal(T, cell.config.tools.flange_from_tcp(tool))
+        T[0, 3] += 1.0                               # a caller's copy: the cache is untouched
+        assert np.array_equal(arm.flange_from_tcp(tool), cell.config.tools.flange_from_tcp(tool))
+        with pytest.raises(ValueError):
+            arm._flange_from_tcp(tool)[0, 3] = 1.0
