@@ -120,3 +120,18 @@ def test_tape_clear_answers_as_before():
         assert new == _answer(_reference_tape_clear, *args), trial
         outcomes.append(new == "ok")
     assert 5 < sum(outcomes) < len(outcomes) - 5     # clear and not clear both exercised
+
+
+def test_joint_move_tool_paths_stacked_are_the_per_sample_products():
+    """check_joint_move multiplies all samples' flange frames with the check points at once:
+    the same numbers as one sample at a time, as it did."""
+    from tapecell.cell.kinematics import dh_frames_many
+
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        frames = dh_frames_many(rng.uniform(-6, 6, (int(rng.integers(1, 200)), 6)))
+        pts = rng.normal(size=(int(rng.integers(1, 30)), 3)) * 0.1
+        pts_h = np.c_[pts, np.ones(len(pts))].T
+        per_sample = np.array([(F[-1] @ pts_h).T[:, :3] for F in frames])
+        stacked = (frames[:, -1] @ pts_h).transpose(0, 2, 1)[:, :, :3]
+        assert np.array_equal(per_sample, stacked)
