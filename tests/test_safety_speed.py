@@ -135,3 +135,23 @@ def test_joint_move_tool_paths_stacked_are_the_per_sample_products():
         per_sample = np.array([(F[-1] @ pts_h).T[:, :3] for F in frames])
         stacked = (frames[:, -1] @ pts_h).transpose(0, 2, 1)[:, :, :3]
         assert np.array_equal(per_sample, stacked)
+
+
+def test_wrist_check_answers_as_without_the_stacked_axis_prefilter(monkeypatch):
+    """The wrist's links near the part and the table: the same answer (and message) with
+    the stacked axis test in front as with every candidate tested one at a time."""
+    import tapecell.cell.safety as safety
+
+    cfg = load_cell_config()
+    limits = SafetyLimits.from_cell(cfg)
+    rng = np.random.default_rng(11)
+    paths = []
+    for _ in range(120):
+        a = REFERENCE_JOINTS + rng.uniform(-0.6, 0.6, 6)
+        b = a + rng.uniform(-1.2, 1.2, 6)
+        paths.append(a + np.linspace(0, 1, 25)[:, None] * (b - a))
+    new = [_answer(safety.check_wrist_clear, limits, p, "m") for p in paths]
+    monkeypatch.setattr(safety, "_drop_clear_axes", lambda *a, **k: None)
+    old = [_answer(safety.check_wrist_clear, limits, p, "m") for p in paths]
+    assert new == old
+    assert 5 < sum(a != "ok" for a in new) < 115
