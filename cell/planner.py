@@ -597,8 +597,16 @@ def check_tape_clear(q_start: np.ndarray, q_target: np.ndarray, tape_surface: np
     flange_from_tcp = invert(tcp_from_flange)
     centre = tape_surface.mean(axis=0)
     reach = float(np.max(np.linalg.norm(tape_surface - centre, axis=1)))
+    steps = np.linspace(0.0, 1.0, n)
+    far = reach + gripper.finger_length + 0.1
     near_at_start = None
-    for s in np.linspace(0.0, 1.0, n):
+    maybe = np.ones(0, bool)
+    for k, s in enumerate(steps):
+        if k % _TAPE_NEAR_CHUNK == 0:      # the next samples' prefilter, all at once
+            maybe = _tape_maybe_near(qa, qb, steps[k:k + _TAPE_NEAR_CHUNK], tape_surface, boxes, flange_from_tcp,
+                                     centre, far, margin)
+        if k > 0 and not maybe[k % _TAPE_NEAR_CHUNK]:
+            continue          # surely no tape point near the gripper here: the test below would pass it
         world_from_tcp = fk(qa + s * (qb - qa)) @ flange_from_tcp
         if near_at_start is not None and \
                 np.linalg.norm(world_from_tcp[:3, 3] - centre) > reach + gripper.finger_length + 0.1:
@@ -619,6 +627,49 @@ def check_tape_clear(q_start: np.ndarray, q_target: np.ndarray, tape_surface: np
                 raise CollisionError(f"joint move: the open gripper's {part} would pass within "
                                      f"{margin * 1e3:.0f} mm of the estimated tape near "
                                      f"{_mm(tape_surface[np.argmax(inside)])} mm")
+
+
+_TAPE_NEAR_SLACK_M = 1e-9
+""":func:`_tape_maybe_near` passes a sample unless it is clear by this much more than the
+exact test needs, so that its stacked arithmetic (rounding ~1e-16 m apart from the exact
+test's) cannot drop a sample the exact test would stop at."""
+
+
+def _tape_maybe_near(qa: np.ndarray, qb: np.ndarray, steps: np.ndarray, tape_surface: np.ndarray, boxes: list,
+                     flange_from_tcp: np.ndarray, centre: np.ndarray, far: float, margin: float) -> np.ndarray:
+    """(n,) bool, per sample of the joint move of :func:`check_tape_clear`: False where that
+    sample surely has no tape point within ``margin`` of a finger or the palm (the TCP more
+    than ``far`` from the tape's ``centre``, or every point outside every widened box), by
+    slack :data:`_TAPE_NEAR_SLACK_M`; all samples at once with stacked arithmetic, so only
+    the others need the exact test one at a time."""
+    from .kinematics import dh_frames_many
+
+    world_from_tcp = dh_frames_many(qa + steps[:, None] * (qb - qa))[:, -1] @ flange_from_tcp      # (n, 4, 4)
+    p = world_from_tcp[:, :3, 3]
+    maybe = np.linalg.norm(p - centre, axis=1) <= far + _TAPE_NEAR_SLACK_M
+    # A sphere around the widened boxes (TCP frame) against a sphere around the tape
+    # (about its centre): where they are apart, no tape point is in a widened box.
+    corners_lo = np.min([lo for lo, _ in boxes], axis=0) - margin
+    corners_hi = np.max([hi for _, hi in boxes], axis=0) + margin
+    mid = 0.5 * (corners_lo + corners_hi)
+    radius = max(float(np.linalg.norm(np.maximum(np.abs(lo - margin - mid), np.abs(hi + margin - mid))))
+                 for lo, hi in boxes)
+    tape_reach = float(np.max(np.linalg.norm(tape_surface - centre, axis=1)))
+    mid_world = np.einsum("nij,j->ni", world_from_tcp[:, :3, :3], mid) + p
+    maybe &= np.linalg.norm(mid_world - centre, axis=1) <= tape_reach + radius + _TAPE_NEAR_SLACK_M
+    idx = np.flatnonzero(maybe)
+    if len(idx):
+        local = (tape_surface[None] - p[idx, None]) @ world_from_tcp[idx, :3, :3]      # (m, M, 3)
+        hit = np.zeros(len(idx), bool)
+        for lo, hi in boxes:
+            inside = (local > lo - margin - _TAPE_NEAR_SLACK_M) & (local < hi + margin + _TAPE_NEAR_SLACK_M)
+            hit |= np.any(np.all(inside, axis=2), axis=1)
+        maybe[idx] = hit
+    return maybe
+
+
+_TAPE_NEAR_CHUNK = 32
+"""Samples per call of :func:`_tape_maybe_near` (a move that stops early computes little more)."""
 
 
 VIA_RISE_M = 0.15

@@ -20,6 +20,13 @@ from tapecell.cell.kinematics import JOINT_LOWER, JOINT_UPPER, fk as dh_fk
 from .ur5e import IKError, ik
 
 _WAYPOINT_STEPS = 10   # a Cartesian move solves IK every this many physics steps
+_WAYPOINT_FRACTIONS = (np.arange(1, _WAYPOINT_STEPS + 1) / _WAYPOINT_STEPS)[:, None]
+
+
+def _ramp(start: np.ndarray, end: np.ndarray, n: int) -> np.ndarray:
+    """(n, k): ``start + (end - start) * (i / n)`` for i = 1..n, the targets a move streams
+    one per physics step (the same numbers as computing each row on its own)."""
+    return start + (end - start) * (np.arange(1, n + 1) / n)[:, None]
 
 
 class SimArmError(TaskFailed):
@@ -55,6 +62,7 @@ class SimArm:
     def __init__(self, cell: SimCell, tool: str | None = None):
         self.cell = cell
         self.tool = "flange"
+        self._tcp: dict[str, np.ndarray] = {}      # flange_from_tcp per tool, read-only
         self.select_tool(tool or cell.mounted_tool)
 
     # ------------------------------------------------------------------ state
@@ -67,7 +75,19 @@ class SimArm:
         self.tool = tool
 
     def flange_from_tcp(self, tool: str | None = None) -> np.ndarray:
-        return self.cell.config.tools.flange_from_tcp(tool or self.tool)
+        return self._flange_from_tcp(tool).copy()
+
+    def _flange_from_tcp(self, tool: str | None) -> np.ndarray:
+        """The cell file's flange_from_tcp of ``tool`` (default the selected one), computed
+        once per tool (scipy's rotation per call cost a third of a Cartesian move's IK);
+        read-only."""
+        tool = tool or self.tool
+        T = self._tcp.get(tool)
+        if T is None:
+            T = self.cell.config.tools.flange_from_tcp(tool)
+            T.setflags(write=False)
+            self._tcp[tool] = T
+        return T
 
     def joints(self) -> np.ndarray:
         """(6,) measured joint angles [rad]."""
@@ -80,7 +100,7 @@ class SimArm:
         world_from_flange = np.eye(4)
         world_from_flange[:3, :3] = d.xmat[fid].reshape(3, 3)
         world_from_flange[:3, 3] = d.xpos[fid]
-        return world_from_flange @ self.flange_from_tcp(tool)
+        return world_from_flange @ self._flange_from_tcp(tool)
 
     def tcp_pose_vector(self, tool: str | None = None) -> np.ndarray:
         """[x, y, z, rx, ry, rz] of :meth:`tcp_pose` (as ur_rtde's getActualTCPPose)."""
@@ -95,11 +115,11 @@ class SimArm:
         """Joints [rad] that put ``tool``'s TCP at ``pose``, nearest ``q_seed`` (default: now).
         Raises :class:`IKError` when unreachable within the joint limits."""
         seed = self.joints() if q_seed is None else np.asarray(q_seed, float)
-        return ik(as_matrix(pose), seed, self.flange_from_tcp(tool)).q
+        return ik(as_matrix(pose), seed, self._flange_from_tcp(tool)).q
 
     def fk(self, q: np.ndarray, tool: str | None = None) -> np.ndarray:
         """4x4 world_from_tcp at joints ``q`` by the DH model."""
-        return dh_fk(np.asarray(q, float)) @ self.flange_from_tcp(tool)
+        return dh_fk(np.asarray(q, float)) @ self._flange_from_tcp(tool)
 
     # -------------------------------------------------------------------- moves
     def move_joints(self, q, speed: float | None = None, settle_s: float = 1.0) -> np.ndarray:
@@ -107,12 +127,10 @@ class SimArm:
         cell file), simulating every step; returns the joints reached."""
         q = _joint_target(q)
         speed = speed or self.cell.config.arm.max_joint_speed
-        q0 = self.cell.data.ctrl[self.cell.arm_actuators].copy()
+        q0 = self.cell.arm_ctrl.copy()
         dt = self.cell.model.opt.timestep
         n = max(1, int(np.ceil(np.abs(q - q0).max() / speed / dt)))
-        for i in range(1, n + 1):
-            self._command(q0 + (q - q0) * (i / n))
-            self.cell.step(1, sync=False)
+        self.cell.step_targets(self.cell.arm_ctrl, _ramp(q0, q, n))
         return self._wait(q, settle_s)
 
     def move_tcp(self, pose, speed: float = 0.1, tool: str | None = None, settle_s: float = 1.0) -> np.ndarray:
@@ -120,8 +138,8 @@ class SimArm:
         ``pose`` at ``speed`` m/s (rotation at most 1 rad/s), as moveL does; IK is solved
         along the way. Returns the joints reached."""
         target = as_matrix(pose)
-        start = self.fk(self.cell.data.ctrl[self.cell.arm_actuators], tool)
-        q_goal = self.ik(target, tool, self.cell.data.ctrl[self.cell.arm_actuators])  # fail before moving
+        start = self.fk(self.cell.arm_ctrl.copy(), tool)
+        q_goal = self.ik(target, tool, self.cell.arm_ctrl.copy())  # fail before moving
         dist = np.linalg.norm(target[:3, 3] - start[:3, 3])
         rots = Rotation.from_matrix(np.stack([start[:3, :3], target[:3, :3]]))
         angle = (rots[1] * rots[0].inv()).magnitude()
@@ -130,16 +148,15 @@ class SimArm:
         n_way = max(1, int(np.ceil(duration / dt / _WAYPOINT_STEPS)))
         # every waypoint's orientation in one call (a call per waypoint cost more than the physics)
         turns = Slerp([0.0, 1.0], rots)(np.arange(1, n_way + 1) / n_way).as_matrix()
-        q_prev = self.cell.data.ctrl[self.cell.arm_actuators].copy()
+        q_prev = self.cell.arm_ctrl.copy()
         for k in range(1, n_way + 1):
             s = k / n_way
             T = np.eye(4)
             T[:3, :3] = turns[k - 1]
             T[:3, 3] = start[:3, 3] + s * (target[:3, 3] - start[:3, 3])
             q_next = q_goal if k == n_way else self.ik(T, tool, q_prev)
-            for i in range(1, _WAYPOINT_STEPS + 1):
-                self._command(q_prev + (q_next - q_prev) * (i / _WAYPOINT_STEPS))
-                self.cell.step(1, sync=False)
+            # the waypoint's IK first, then its steps (an unreachable waypoint stops the arm there)
+            self.cell.step_targets(self.cell.arm_ctrl, q_prev + (q_next - q_prev) * _WAYPOINT_FRACTIONS)
             q_prev = q_next
         return self._wait(q_goal, settle_s)
 
@@ -178,16 +195,13 @@ class SimArm:
         speed = self.cell.config.tools.gripper.close_speed if speed is None else float(speed)
         if not speed > 0:
             raise SimArmError(f"gripper close speed must be positive, got {speed}")
-        ctrl = self.cell.data.ctrl
         fingers = self.cell.finger_actuators
         closed = self.cell.model.actuator_ctrlrange[fingers, 0]      # each finger's closed target [m]
-        start = ctrl[fingers].copy()
+        start = self.cell.finger_ctrl.copy()
         dt = self.cell.model.opt.timestep
         # Each finger covers half the pad distance: ramp at speed / 2 per finger.
         n = max(1, int(np.ceil(np.max(start - closed) / (speed / 2) / dt)))
-        for i in range(1, n + 1):
-            ctrl[fingers] = start + (closed - start) * (i / n)
-            self.cell.step(1, sync=False)
+        self.cell.step_targets(self.cell.finger_ctrl, _ramp(start, closed, n))
         return self._move_fingers(closed, settle_s)
 
     # ----------------------------------------------------------------- helpers
@@ -198,33 +212,34 @@ class SimArm:
         """Step until the joints are within tolerance of ``q`` and nearly still. A load (the
         tape in the gripper) leaves a small steady offset under the position servos: still
         for 0.1 s within 10x the tolerance counts as arrived too."""
-        d = self.cell.data
+        qpos, qvel = self.cell.arm_qpos, self.cell.arm_qvel      # views of the data
         tol = self.cell.config.arm.joint_tolerance
         dt = self.cell.model.opt.timestep
         still_steps = 0
         for _ in range(int(round(settle_s / dt))):
-            err = np.abs(d.qpos[self.cell.arm_qadr] - q).max()
-            still = np.abs(d.qvel[self.cell.arm_dofs]).max() < 0.01
+            still = np.abs(qvel).max() < 0.01
             still_steps = still_steps + 1 if still else 0
-            if still and (err < tol or (err < 10 * tol and still_steps * dt >= 0.1)):
-                self.cell.sync()
-                return self.joints()
+            if still:      # the joint error matters only then
+                err = np.abs(qpos - q).max()
+                if err < tol or (err < 10 * tol and still_steps * dt >= 0.1):
+                    self.cell.sync()
+                    return self.joints()
             self.cell.step(1, sync=False)
         self.cell.sync()
-        err = np.abs(d.qpos[self.cell.arm_qadr] - q).max()
+        err = np.abs(qpos - q).max()
         raise TargetNotReached(f"the simulated arm did not reach its target (joint error {err:.4f} rad after {settle_s} s)")
 
     def _move_fingers(self, target: float, settle_s: float) -> float:
-        d = self.cell.data
-        d.ctrl[self.cell.finger_actuators] = target
+        self.cell.finger_ctrl[:] = target
         n = int(round(settle_s / self.cell.model.opt.timestep))
-        prev = d.qpos[self.cell.finger_qadr].copy()
+        fingers = self.cell.finger_qpos          # a view of the data
+        prev = fingers.copy()
         for i in range(n):
             self.cell.step(1, sync=False)
-            q = d.qpos[self.cell.finger_qadr]
+            q = fingers.copy()
             if i > 50 and np.abs(q - prev).max() < 1e-7:
                 break
-            prev = q.copy()
+            prev = q
         self.cell.sync()
         return self.gripper_opening()
 

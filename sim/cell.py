@@ -45,6 +45,15 @@ class SimError(CellConfigError):
     """The simulation went wrong (unstable, warnings, unknown camera or tool)."""
 
 
+def _view(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``a[idx]`` as a view of ``a``: ``idx`` must be a run of consecutive indices (as the
+    scene is built: the arm's six joints and actuators first, then the two fingers')."""
+    idx = np.asarray(idx)
+    if len(idx) and np.array_equal(idx, np.arange(idx[0], idx[0] + len(idx))):
+        return a[idx[0]:idx[0] + len(idx)]
+    raise SimError("the arm's or the fingers' joints or actuators are not consecutive in the model")
+
+
 @dataclass(frozen=True)
 class CaptureTiming:
     """Seconds spent in the last reset (settling) and capture (rendering + segmentation)."""
@@ -67,8 +76,10 @@ class SimCell:
         self.model = self.spec.compile()
         self.data = mujoco.MjData(self.model)
         # a view of the data's warning counters, read after every step (fetching it anew
-        # each time cost a tenth of a step)
+        # each time cost a tenth of a step); compared as bytes with all zeros (a fifth of
+        # the cost of counts.any())
         self._warning_counts = self.data.warning.number
+        self._no_warnings = bytes(self._warning_counts.nbytes)
         m = self.model
         self._tape_geoms = np.array([m.geom(f"tape_{i}").id for i in range(config.tape.plates)])
         self._tape_bodies = np.array([m.body(f"tape_{i}").id for i in range(config.tape.plates)])
@@ -84,6 +95,14 @@ class SimCell:
         self.arm_actuators = np.array([m.actuator(n).id for n in JOINT_NAMES])
         self.finger_qadr = np.array([m.jnt_qposadr[m.joint(f"finger_{s}").id] for s in ("left", "right")])
         self.finger_actuators = np.array([m.actuator(f"finger_{s}").id for s in ("left", "right")])
+        # Views of the arm's and the fingers' entries of the data (the same numbers as
+        # indexing with the arrays above, without a copy per read in the moves' loops).
+        d = self.data
+        self.arm_qpos = _view(d.qpos, self.arm_qadr)
+        self.arm_qvel = _view(d.qvel, self.arm_dofs)
+        self.arm_ctrl = _view(d.ctrl, self.arm_actuators)
+        self.finger_qpos = _view(d.qpos, self.finger_qadr)
+        self.finger_ctrl = _view(d.ctrl, self.finger_actuators)
         self._pad_geoms = np.array([m.geom(f"pad_{s}").id for s in ("left", "right")])
         # Known objects that can hide the tape: the arm and its tools (a real cell knows
         # where they are from the joints). The part is not one: marking its whole image
@@ -255,9 +274,25 @@ class SimCell:
             mujoco.mj_step(m, d)
         if sync:
             self.sync()
-        self.check_warnings()
+        if self._warning_counts.tobytes() != self._no_warnings:
+            self.check_warnings()
         if self.step_hook is not None:
             self.step_hook()
+
+    def step_targets(self, ctrl: np.ndarray, targets: np.ndarray) -> None:
+        """One physics step per row of ``targets`` (k, m), each after writing the row into
+        ``ctrl`` (m,) (a view of ``data.ctrl``, e.g. :attr:`arm_ctrl`): the same steps as
+        ``ctrl[:] = row; step(1, sync=False)`` row by row (warnings checked and the step
+        hook called after every step), with less Python around each."""
+        m, d = self.model, self.data
+        counts, clean = self._warning_counts, self._no_warnings
+        for row in targets:
+            ctrl[:] = row
+            mujoco.mj_step(m, d)
+            if counts.tobytes() != clean:
+                self.check_warnings()
+            if self.step_hook is not None:
+                self.step_hook()
 
     def sync(self) -> None:
         """World poses from the current joints (``mj_kinematics``): ``mj_step`` leaves the

@@ -93,9 +93,11 @@ def ik(base_from_target: np.ndarray, q_seed: np.ndarray, flange_from_tcp: np.nda
     residual when no start converges.
     """
     q_seed = np.asarray(q_seed, float)
-    rng = np.random.default_rng(rng_seed)
+    rng = None          # the perturbed seeds' generator, made only when the seed fails
     best: IKResult | None = None
     for attempt in range(restarts + 1):
+        if attempt == 1:
+            rng = np.random.default_rng(rng_seed)
         q0 = q_seed if attempt == 0 else np.clip(q_seed + rng.uniform(-1.5, 1.5, 6), lower, upper)
         res = _dls(base_from_target, q0, flange_from_tcp, lower, upper, tol_m, tol_rad, max_iter)
         if best is None or res.position_error_m + 0.1 * res.rotation_error_rad < \
@@ -112,11 +114,36 @@ def ik(base_from_target: np.ndarray, q_seed: np.ndarray, flange_from_tcp: np.nda
 
 _DAMPING = 1e-3 * np.eye(6)   # damped least squares: lambda I
 
+_JACOBIAN_MEMO: dict = {}
+"""(joints bytes, tool bytes) -> (T, J): the last few :func:`jacobian` answers of :func:`_dls`."""
+_JACOBIAN_MEMO_SIZE = 4
+jacobian_memo_stats = [0, 0]
+"""[answers from the memo, answers computed]"""
+
+
+def _jacobian_memo(q: np.ndarray, flange_from_tcp: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`jacobian` at ``q``, an earlier answer again when ``q`` and the tool are the same
+    bit for bit: a Cartesian move solves each waypoint from the last one's solution, so
+    each solve starts where the one before converged, and its first waypoint from where
+    the solve of its goal started (the same numbers, one evaluation fewer per solve). The
+    arrays returned are only read."""
+    key = (q.tobytes(), None if flange_from_tcp is None else np.asarray(flange_from_tcp, float).tobytes())
+    out = _JACOBIAN_MEMO.get(key)
+    if out is not None:
+        jacobian_memo_stats[0] += 1
+        return out
+    jacobian_memo_stats[1] += 1
+    out = jacobian(q, flange_from_tcp)
+    if len(_JACOBIAN_MEMO) >= _JACOBIAN_MEMO_SIZE:
+        del _JACOBIAN_MEMO[next(iter(_JACOBIAN_MEMO))]      # the oldest
+    _JACOBIAN_MEMO[key] = out
+    return out
+
 
 def _dls(target, q, flange_from_tcp, lower, upper, tol_m, tol_rad, max_iter) -> IKResult:
     q = q.copy()
     for it in range(max_iter):
-        T, J = jacobian(q, flange_from_tcp)
+        T, J = _jacobian_memo(q, flange_from_tcp)
         e = pose_error(target, T)
         ep, er = np.linalg.norm(e[:3]), np.linalg.norm(e[3:])
         if ep <= tol_m and er <= tol_rad:
