@@ -119,3 +119,18 @@ def test_real_probe_declined_connects_nothing(monkeypatch, rtde_log, capture_dir
     monkeypatch.setattr("builtins.input", lambda prompt="": "no")
     code = main(["probe", "--config", load_cell_config().source, "--capture", str(capture_dir), "--execute"])
     assert code == 1 and rtde_log == [] and "cancelled" in capsys.readouterr().err
+
+
+def test_the_needle_confirms_one_hypothesis_only_when_it_alone_touches_tape():
+    """cell.probe.confirmed: the closest hypothesis within 4 mm, clearly closer than the rest,
+    and no other within 4 mm; two tips that both touch tape are not told apart by which is
+    closer (an episode kept one 0.8 mm from tape over one 2.3 mm away, 28 mm from the end)."""
+    from tapecell.cell.probe import confirmed
+
+    assert confirmed([0.0008, None]) == 0
+    assert confirmed([0.0050, 0.0009]) == 1
+    assert confirmed([0.0008, 0.0050]) == 0
+    assert confirmed([0.0050, None]) is None              # nothing touched near enough
+    assert confirmed([0.0023, 0.0008]) is None            # both on tape: the needle must look elsewhere
+    assert confirmed([0.0030, 0.0042]) is None            # not clearly closer
+    assert confirmed([None, None]) is None and confirmed([]) is None

@@ -224,7 +224,7 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
     if k is None:
         raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm confirms none of the "
                          f"{len(tips)} hypotheses of the tape's end (their tips are {listed} mm away; one must be "
-                         f"within {PROBE_CONFIRM_M * 1e3:.0f} mm and clearly the closest); nothing moved")
+                         f"within {PROBE_CONFIRM_M * 1e3:.0f} mm, the only one so near and clearly the closest); nothing moved")
     reason = f"hypothesis {k} confirmed by the needle ({1e3 * distances[k]:.1f} mm from its tip)"
     settled = adopt(est, k, capture.tape, reason)
     story.add("estimate", None, (capture, settled), "after probing")
