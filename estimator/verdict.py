@@ -110,6 +110,9 @@ LOCATE_UNEXPLAINED_PX = 15
 region does not make the fit poor, but the view's end may be elsewhere (a wrong "ok" 12.9 mm
 off had 25 px of it in the one view that located the end besides a sliver)."""
 PAST_END = "shows tape past the model's end"
+END_UNEXPLAINED = "does not explain the free end"
+"""The words of a ``poor_fit`` reason for a view whose free end the model does not explain
+(END_OFFSET_PX), which an episode's needle may settle."""
 """The words of a ``poor_fit`` reason for tape going on past the model's end (the rest of
 the shape explains the views): a robot with a needle may measure where the end is."""
 MIN_TRUNK_PX = 3.0
@@ -508,7 +511,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     bad_end = [k for k in range(len(views)) if seen[k] and ends[k] > END_OFFSET_PX]
     if verdict is not Verdict.POOR_FIT and bad_end:
         k = bad_end[0]
-        verdict, reason = Verdict.POOR_FIT, (f"view {k} does not explain the free end: mean boundary distance "
+        verdict, reason = Verdict.POOR_FIT, (f"view {k} {END_UNEXPLAINED}: mean boundary distance "
                                              f"{ends[k]:.1f} px around the tip > {END_OFFSET_PX:g} px")
     return Judgement(verdict, reason, sum(locates), offsets)
 

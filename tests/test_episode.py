@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -245,6 +246,32 @@ def test_needle_measures_the_end_of_a_fit_the_views_say_is_short():
         off = true_tip + 0.025 * truth[:3, 1] + 0.01 * truth[:3, 2]
         missed, steps = measure_end_by_probing(cell, arm, poor(off), cfg.tape.width)
         assert missed.verdict is Verdict.POOR_FIT and steps == []
+
+
+def test_an_end_the_model_does_not_explain_is_measured_by_the_needle(capsys):
+    """Seed 520012: the tape's end hooks over within a few millimetres, which 30 mm plates
+    cannot follow; the estimate is poor_fit ("does not explain the free end"). The needle
+    touches tape at its tip and none 3 mm past it: the end is there, and the grasp is made.
+    Which poor fits the needle settles: tape past the end or an unexplained end, not a view
+    the model does not explain at all."""
+    from tapecell.estimator import Verdict
+    from tapecell.estimator.verdict import END_UNEXPLAINED, PAST_END
+    from tapecell.sim.episode import end_to_measure
+
+    code = main(["episode", "--seed", "520012"])
+    out, err = capsys.readouterr()
+    doc = json.loads(out)
+    assert code == 0, err
+    assert doc["outcome"] == "grasped" and doc["verdict"] == "ok"
+    assert doc["verdict_reason"].startswith("the needle touched tape at the tip")
+    assert doc["probed_past_end_mm"] == [] and doc["tip_error_mm"] < 3.0
+
+    def est(verdict, reason):
+        return SimpleNamespace(verdict=verdict, verdict_reason=reason)
+    assert end_to_measure(est(Verdict.POOR_FIT, f"view 0 {END_UNEXPLAINED}: mean boundary distance 3.1 px"))
+    assert end_to_measure(est(Verdict.POOR_FIT, f"view 1 {PAST_END} over 40 px (> 30 px)"))
+    assert not end_to_measure(est(Verdict.POOR_FIT, "view 0 is not explained: mean boundary distance 3.9 px > 3 px"))
+    assert not end_to_measure(est(Verdict.HIDDEN, f"view 0 {END_UNEXPLAINED}"))
 
 
 def test_episode_recording_shows_its_content_on_opening(tmp_path):
