@@ -110,11 +110,11 @@ LOCATE_UNEXPLAINED_PX = 15
 region does not make the fit poor, but the view's end may be elsewhere (a wrong "ok" 12.9 mm
 off had 25 px of it in the one view that located the end besides a sliver)."""
 PAST_END = "shows tape past the model's end"
+"""The words of a ``poor_fit`` reason for tape going on past the model's end (the rest of
+the shape explains the views): a robot with a needle may measure where the end is."""
 END_UNEXPLAINED = "does not explain the free end"
 """The words of a ``poor_fit`` reason for a view whose free end the model does not explain
 (END_OFFSET_PX), which an episode's needle may settle."""
-"""The words of a ``poor_fit`` reason for tape going on past the model's end (the rest of
-the shape explains the views): a robot with a needle may measure where the end is."""
 MIN_TRUNK_PX = 3.0
 """The tape's last 10 mm must project at least this long [px] for the direction past the tip
 to be known (an end seen end-on: every unexplained region counts as past the end)."""
@@ -300,11 +300,13 @@ def _thin_at(observed: np.ndarray, origin: tuple[int, int], tip_px: np.ndarray) 
 
 
 SLIVER_STRAY_PX = 2
-"""A sliver view (see THIN_END_PX) locates the end only where the model explains the whole
-view: at most this many observed pixels anywhere lie farther than UNEXPLAINED_MARGIN_PX from
-the model's silhouette (segmentation breaks a thinning sliver into dots, and a wrong "ok" 81
-mm off had its model end where the dots began, the tape going on as dots for 270 px), and
-another view locates the end without being a sliver."""
+"""A sliver view (see THIN_END_PX) locates the end only where the model explains every view
+whole: in each, at most this many observed pixels lie farther than UNEXPLAINED_MARGIN_PX from
+the model's silhouette; and another view locates the end without being a sliver. (A
+thinning sliver's end is where segmentation loses it, not necessarily the tape's: a wrong
+"ok" 81 mm off had its model end where the sliver broke into dots, and with the episodes'
+segmentation, which drops the dots, its sliver ended there cleanly; the other view's
+observed end, 100 px beyond the model's, was unexplained.)"""
 
 
 def _explained(observed: np.ndarray, model: np.ndarray) -> bool:
@@ -474,7 +476,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
     seen = [s_ and _on_outline(v, o, xy, edge, boxes) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
-            and _clear_of_border(v, o, xy, edge) for s_, v, o, xy in zip(seen, views, observed, origins)]
+            for s_, v, o, xy in zip(seen, views, observed, origins)]
     # Observed tape near the tip that the model leaves unexplained, per view that sees the
     # end: all of it, and what of it goes on past the tip.
     back = tip_position - 0.010 * tip_rotation[:, 0]
@@ -490,11 +492,14 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     # but does not locate it is still held against the model below. (A sliver whose end
     # coincides with the model's was tried as locating the end: on fresh shell captures it
     # let through an "ok" 81 mm off.)
-    candidates = [s_ and x <= LOCATE_UNEXPLAINED_PX for s_, x in zip(seen, extra)]
+    candidates = [s_ and x <= LOCATE_UNEXPLAINED_PX and _clear_of_border(v, o, xy, edge)
+                  for s_, x, v, o, xy in zip(seen, extra, views, observed, origins)]
     thin = [c and _thin_at(o, xy, tip) for c, o, xy, tip in zip(candidates, observed, origins, tips)]
     locates = [c and not t for c, t in zip(candidates, thin)]
-    if any(locates):
-        locates = [lo or (t and _explained(o, m)) for lo, t, o, m in zip(locates, thin, observed, models)]
+    if any(locates) and any(thin) and all(_explained(o, m) for o, m in zip(observed, models)):
+        # A sliver view counts where another view locates the end and the model explains
+        # every view whole (SLIVER_STRAY_PX).
+        locates = [lo or t for lo, t in zip(locates, thin)]
     ends = end_offsets(views, observed, models, origins, tip_position)
     verdict, reason = judge(offsets, sum(locates), best_cost, tip_position, alternatives)
     if verdict is not Verdict.POOR_FIT:

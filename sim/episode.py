@@ -343,13 +343,15 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
 def end_to_measure(est) -> bool:
     """Does the needle settle ``est`` by measuring its end (:func:`measure_end_by_probing`)?
     For a ``poor_fit`` whose views show tape past the model's end, or whose free end the
-    model does not explain: both say the end is about there but not where exactly. (A fit
-    that does not explain a whole view is not measured: its end may be anywhere.) On 25
-    episodes of earlier campaigns refused for an unexplained end, the needle made 12 grasps
-    (tips 0.2-5.7 mm off) and kept all the far ones (23-35 mm off: no tape at their tips)
-    refused; none failed."""
-    return est.verdict is Verdict.POOR_FIT and (PAST_END in est.verdict_reason
-                                                or END_UNEXPLAINED in est.verdict_reason)
+    model does not explain, and which has no alternative hypothesis: both reasons say the
+    end is about there but not where exactly. (A fit that does not explain a whole view is
+    not measured: its end may be anywhere; nor one with alternatives, which measuring its
+    own end would ignore: a tip on the tape's body finds tape there and none ahead too.) On
+    25 episodes of earlier campaigns refused for an unexplained end, the needle made 12
+    grasps (tips 0.2-5.7 mm off) and kept all the far ones (23-35 mm off: no tape at their
+    tips) refused; none failed."""
+    return (est.verdict is Verdict.POOR_FIT and not est.alternatives
+            and (PAST_END in est.verdict_reason or END_UNEXPLAINED in est.verdict_reason))
 
 
 PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, 0.025)
@@ -358,7 +360,8 @@ trunk]; it stops at the first step without tape."""
 
 
 def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None = None):
-    """For a ``poor_fit`` estimate whose views show tape past its end: the needle touches
+    """For a ``poor_fit`` estimate whose views show tape past its end or do not explain
+    its end (see :func:`end_to_measure`): the needle touches
     the estimate's tip (it must be tape, within PROBE_CONFIRM_M), then points on the
     centre line PAST_END_STEPS_M beyond it, until one finds no tape there. Returns (the
     estimate with verdict "ok" and its tip moved to the last point that was tape, or kept
