@@ -17,9 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import PROBE_CONFIRM_M
+from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, end_measurable
 from tapecell.estimator import Verdict, estimate, forward_kinematics
-from tapecell.estimator.verdict import END_UNEXPLAINED, PAST_END
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
 from tapecell.estimator.metrics import errors
@@ -139,7 +138,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             story.add("probes", float(cell.data.time), probes)
             story.add("estimate", float(cell.data.time), (capture, est), "after probing")
             times["probe"] = time.perf_counter() - t1
-        elif end_to_measure(est):
+        elif end_measurable(est):
             # The tape goes on past the model's end, or the model does not explain the end
             # (an end hooked over within a few millimetres, which 30 mm plates cannot
             # follow): the needle touches the estimated tip and then steps along the tape
@@ -340,28 +339,14 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     return adopt(est, best, est_spec(cell), reason), report
 
 
-def end_to_measure(est) -> bool:
-    """Does the needle settle ``est`` by measuring its end (:func:`measure_end_by_probing`)?
-    For a ``poor_fit`` whose views show tape past the model's end, or whose free end the
-    model does not explain, and which has no alternative hypothesis: both reasons say the
-    end is about there but not where exactly. (A fit that does not explain a whole view is
-    not measured: its end may be anywhere; nor one with alternatives, which measuring its
-    own end would ignore: a tip on the tape's body finds tape there and none ahead too.) On
-    25 episodes of earlier campaigns refused for an unexplained end, the needle made 12
-    grasps (tips 0.2-5.7 mm off) and kept all the far ones (23-35 mm off: no tape at their
-    tips) refused; none failed."""
-    return (est.verdict is Verdict.POOR_FIT and not est.alternatives
-            and (PAST_END in est.verdict_reason or END_UNEXPLAINED in est.verdict_reason))
-
-
-PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, 0.025)
+PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, PAST_END_MAX_M)
 """Where the needle probes past a model's end that the views say is short [m, along its
 trunk]; it stops at the first step without tape."""
 
 
 def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None = None):
     """For a ``poor_fit`` estimate whose views show tape past its end or do not explain
-    its end (see :func:`end_to_measure`): the needle touches
+    its end (see :func:`tapecell.cell.probe.end_measurable`): the needle touches
     the estimate's tip (it must be tape, within PROBE_CONFIRM_M), then points on the
     centre line PAST_END_STEPS_M beyond it, until one finds no tape there. Returns (the
     estimate with verdict "ok" and its tip moved to the last point that was tape, or kept

@@ -256,7 +256,7 @@ def test_an_end_the_model_does_not_explain_is_measured_by_the_needle(capsys):
     the model does not explain at all."""
     from tapecell.estimator import Verdict
     from tapecell.estimator.verdict import END_UNEXPLAINED, PAST_END
-    from tapecell.sim.episode import end_to_measure
+    from tapecell.cell.probe import end_measurable as end_to_measure
 
     code = main(["episode", "--seed", "520012"])
     out, err = capsys.readouterr()

@@ -343,3 +343,69 @@ def test_without_probe_an_ambiguous_estimate_says_how_to_settle_it(real_like, mo
                  "--execute", "--yes"])
     out, err = capsys.readouterr()
     assert code == 1 and "nothing moved (--execute --probe settles it with the needle" in err
+
+
+def _poor_fit_past_the_end(monkeypatch):
+    """The real estimate, forced "poor_fit" for tape past the model's end, no alternatives."""
+    import dataclasses
+
+    import tapecell.estimator as estimator
+    from tapecell.estimator.result import Verdict
+    from tapecell.estimator.verdict import PAST_END
+
+    real_estimate = estimator.estimate
+
+    def poor(*a, **k):
+        return dataclasses.replace(real_estimate(*a, **k), verdict=Verdict.POOR_FIT, alternatives=(),
+                                   verdict_reason=f"view 1 {PAST_END} over 40 px (> 30 px)")
+    monkeypatch.setattr(estimator, "estimate", poor)
+    return real_estimate
+
+
+@pytest.mark.parametrize("along_mm, side_mm, measured", [(10.0, 1.0, True), (10.0, 8.0, False), (40.0, 0.0, False)])
+def test_probe_measures_the_end_of_a_fit_that_shows_tape_past_it(real_like, monkeypatch, capsys,
+                                                                  along_mm, side_mm, measured):
+    """--execute --probe on a poor_fit whose views show tape past the model's end: the
+    operator puts the needle on the tape's end; on the estimated end's line (within 4 mm,
+    up to 25 mm past the tip) the tip moves there and the grasp is planned and run;
+    elsewhere nothing moves (freedrive only)."""
+    import numpy as np
+    from fakes import FakeRobot, install_fake_rtde
+
+    images, cameras = real_like
+    real_estimate = _poor_fit_past_the_end(monkeypatch)
+    robot = FakeRobot(np.array(load_cell_config().arm.park_joints))
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    from tapecell.cli.commands.run import grab_capture
+    from tapecell.estimator.capture import load_cameras
+
+    est = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images))
+    trunk, side = est.tip_rotation[:, 0], est.tip_rotation[:, 2]
+    _guide_needle_to(robot, est.tip_position + 1e-3 * (along_mm * trunk + side_mm * side), monkeypatch)
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--probe", "--yes"])
+    out, err = capsys.readouterr()
+    names = [c[0] for c in robot.log]
+    assert "teachMode" in names and "endTeachMode" in names
+    if measured:
+        assert code == 0, err
+        assert f"the tape's end measured by the needle: {along_mm:.1f} mm past the model's end" in out
+        assert "grasp executed" in out and names.index("endTeachMode") < names.index("moveJ")
+    else:
+        assert code == 1 and "is not on the estimated end's line" in err.strip().splitlines()[-1]
+        assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
+
+
+def test_measured_end_lies_on_the_estimated_ends_line():
+    """cell.probe.measured_end: a touch on the trunk's line moves the end along it (never
+    back), within 4 mm of the line and from 4 mm before the tip to 25 mm past it."""
+    import numpy as np
+
+    from tapecell.cell.probe import measured_end
+
+    tip, trunk = np.array([0.1, 0.5, 0.1]), np.array([0.0, 0.0, -1.0])
+    assert np.allclose(measured_end(tip, trunk, tip + [0.0, 0.003, -0.012]), tip + [0.0, 0.0, -0.012])
+    assert np.allclose(measured_end(tip, trunk, tip + [0.0, 0.0, 0.003]), tip)        # behind: kept
+    assert measured_end(tip, trunk, tip + [0.0, 0.005, -0.012]) is None              # beside the line
+    assert measured_end(tip, trunk, tip + [0.0, 0.0, -0.030]) is None                # too far past
+    assert measured_end(tip, trunk, tip + [0.0, 0.0, 0.005]) is None                 # too far behind

@@ -20,8 +20,12 @@ verdict is not "ok" is refused (exit 1): a robot must not act on it. With --exec
 an estimate that is "hidden" or "ambiguous" is settled with the needle first: the arm goes
 into freedrive, you guide the needle onto the middle of the tape's end and press Enter, and
 the hypothesis (the estimate or one of its alternatives) whose tip the needle confirms
-(within 4 mm, 1.5 mm closer than any other) becomes the answer; if none or several are,
-nothing moves. "poor_fit" is always refused: the model does not explain what was seen.
+(within 4 mm, the only one so near and 1.5 mm closer than any other) becomes the answer;
+if none or several are, nothing moves. A "poor_fit" whose views show tape past the model's
+end, or whose end the model does not explain (and that has no alternative shape), is
+measured the same way: the needle on the tape's end, within 4 mm of the estimated end's
+line and at most 25 mm past it, moves the tip there; elsewhere nothing moves. Any other
+"poor_fit" is refused: the model does not explain what was seen.
 
 Nothing moves without --execute. With --execute the robot's address and the plan are
 shown and you type 'yes' on the terminal BEFORE any connection is opened (--yes answers
@@ -101,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
     from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, Speeds, TipFrame, estimated_surface,
                                        execute_plan, plan_grasp)
     from tapecell.cell.safety import SafetyLimits
+    from tapecell.cell.probe import end_measurable
     from tapecell.cell.story import Story
 
     cfg = load_cell_config(args.config)
@@ -131,12 +136,13 @@ def run(args: argparse.Namespace) -> int:
         if not est.actionable:
             why = (f"the estimate's verdict is {est.verdict.value}"
                    + (f" ({est.verdict_reason})" if est.verdict_reason else "") + ": a robot must not act on it")
-            if est.verdict.value not in PROBED_VERDICTS:
+            if est.verdict.value not in PROBED_VERDICTS and not end_measurable(est):
                 raise TaskFailed(f"{why}; nothing moved")
             if not (args.execute and args.probe):
                 raise TaskFailed(f"{why}; nothing moved (--execute --probe settles it with the needle, guided by "
                                  "hand)")
-            est = settle_with_needle(cfg, capture, est, story, args.yes)
+            est = (measure_end_with_needle if end_measurable(est) else settle_with_needle)(cfg, capture, est, story,
+                                                                                           args.yes)
             result["verdict"] = est.verdict.value
             print(f"estimate after probing: {est.verdict_reason}")
 
@@ -227,6 +233,46 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
                          f"within {PROBE_CONFIRM_M * 1e3:.0f} mm, the only one so near and clearly the closest); nothing moved")
     reason = f"hypothesis {k} confirmed by the needle ({1e3 * distances[k]:.1f} mm from its tip)"
     settled = adopt(est, k, capture.tape, reason)
+    story.add("estimate", None, (capture, settled), "after probing")
+    return settled
+
+
+def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=print):
+    """Freedrive measurement of the tape's end for a ``poor_fit`` whose end the views place
+    only roughly (:func:`tapecell.cell.probe.end_measurable`: tape past the model's end, or
+    an end the model does not explain): the operator guides the needle onto the middle of
+    the tape's end; where the touch lies on the estimated end's line (within 4 mm of it, from
+    4 mm before the tip to 25 mm past it), the tip moves there along the tape and the
+    estimate becomes "ok" (:func:`tapecell.cell.probe.measured_end`); elsewhere
+    :class:`TaskFailed` (nothing moved but by hand). The simulated cell measures the same
+    ends by stepping the needle past the tip."""
+    import dataclasses
+
+    from tapecell.cli.options import confirm_robot
+    from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, guided_probe, measured_end
+    from tapecell.cell.ur import URArm
+    from tapecell.estimator import Verdict
+
+    confirm_robot(cfg.robot.host, cfg.robot.port, [
+        f"the estimate is {est.verdict.value} ({est.verdict_reason}): start freedrive (teach mode); the arm's "
+        "brakes release and it follows your hand, making no motion of its own",
+        "record the needle tip when you press Enter with it on the middle of the tape's end; freedrive then ends",
+        "then plan the grasp at the end the needle measured, show it and ask again before moving"], yes)
+    arm = URArm.from_config(cfg, cfg.tools.needle.flange_from_tcp)
+    with arm:
+        points = guided_probe(arm, cfg.tools.needle.flange_from_tcp, ["tip"], prompt, log)
+    touched = np.asarray(points[0].position, float)
+    tip, trunk = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)[:, 0]
+    story.add("probes", None, [{"label": "end", "aimed": tip, "touched": touched, "t": None}])
+    end = measured_end(tip, trunk, touched)
+    if end is None:
+        raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm is not on the estimated "
+                         f"end's line (it must lie within {PROBE_CONFIRM_M * 1e3:.0f} mm of it, from "
+                         f"{PROBE_CONFIRM_M * 1e3:.0f} mm before the tip to {PAST_END_MAX_M * 1e3:.0f} mm past it); "
+                         "nothing moved")
+    moved = float(np.linalg.norm(end - tip))
+    reason = f"the tape's end measured by the needle: {moved * 1e3:.1f} mm past the model's end"
+    settled = dataclasses.replace(est, tip_position=end, verdict=Verdict.OK, verdict_reason=reason)
     story.add("estimate", None, (capture, settled), "after probing")
     return settled
 
