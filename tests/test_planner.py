@@ -419,3 +419,25 @@ def test_planned_straight_moves_keep_the_joint_speed_limit():
             assert rate <= LIMITS.max_joint_speed + 1e-9, (a, b, rate)
             checked += 1
     assert checked >= 30
+
+
+def test_the_open_fingers_keep_a_margin_from_the_tape_on_the_approach(monkeypatch):
+    """On the straight approach the open fingers keep 3 mm (APPROACH_TAPE_MARGIN_M) from
+    the estimated tape: a sheet of tape 2 mm inside the open jaw's pad faces (18 mm from the
+    tape's face, the pads 20 mm) is refused; 3.5 mm inside is planned (an estimate a few mm
+    off along an arching body let a pad push the tape out of the jaw in episode 670065)."""
+    import tapecell.cell.planner as planner
+
+    tip, nodes = tape(np.zeros(15))
+    # A sheet 30 mm around the tip (every tilt and pitch of the jaw meets it).
+    a, b = np.meshgrid(np.linspace(-0.03, 0.03, 25), np.linspace(-0.03, 0.03, 25))
+    w = tip.rotation[:, 1]
+
+    def sheet(offset):
+        return tip.position + a.reshape(-1, 1) * tip.trunk + b.reshape(-1, 1) * w + offset * tip.normal
+    with pytest.raises(PlanRefused) as e:
+        plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, tape_surface=sheet(0.018))
+    assert e.value.reason == "collision" and "finger would hit the tape" in str(e.value)
+    plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, tape_surface=sheet(0.0165))
+    monkeypatch.setattr(planner, "APPROACH_TAPE_MARGIN_M", 0.0)        # without the margin: planned
+    plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, tape_surface=sheet(0.018))
