@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, end_measurable
+from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -334,6 +334,11 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
             best = k
             reason = (f"hypothesis {best} confirmed by the needle where the hypotheses disagree "
                       f"(its tip touched {1e3 * found[k]:.1f} mm away)")
+        elif k is None and clearly_closest(found) is not None:
+            # Nothing told where the shapes disagree: the one touched clearly closest.
+            best = clearly_closest(found)
+            reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip, every "
+                      f"other {PROBE_WIDE_MARGIN_M * 1e3:.1f} mm farther or more)")
     if best is None:
         return est, report
     return adopt(est, best, est_spec(cell), reason), report

@@ -134,3 +134,17 @@ def test_the_needle_confirms_one_hypothesis_only_when_it_alone_touches_tape():
     assert confirmed([0.0023, 0.0008]) is None            # both on tape: the needle must look elsewhere
     assert confirmed([0.0030, 0.0042]) is None            # not clearly closer
     assert confirmed([None, None]) is None and confirmed([]) is None
+
+
+def test_after_inconclusive_probes_only_a_clearly_closest_touched_tip_is_kept():
+    """cell.probe.clearly_closest (the episode's last resort when several hypotheses' tips
+    touch tape and probing where the shapes disagree tells nothing): the closest within 4 mm
+    with every other at least 2.5 mm farther; right ones were kept at 2.6-3.4 mm, a wrong one
+    28 mm from the end at 1.5 mm."""
+    from tapecell.cell.probe import clearly_closest
+
+    assert clearly_closest([0.00034, None, 0.00306]) == 0
+    assert clearly_closest([0.0023, 0.0008]) is None            # 1.5 mm apart: not clear
+    assert clearly_closest([0.0007, 0.00075]) is None
+    assert clearly_closest([0.0050, 0.0090]) is None            # nothing within 4 mm
+    assert clearly_closest([None, 0.0010]) == 1
