@@ -614,13 +614,9 @@ def check_tape_clear(q_start: np.ndarray, q_target: np.ndarray, tape_surface: np
         if k > 0 and not maybe[k % _TAPE_NEAR_CHUNK]:
             continue          # surely no tape point near the gripper here: the test below would pass it
         world_from_tcp = fk(qa + s * (qb - qa)) @ flange_from_tcp
-        if near_at_start is not None and \
-                np.linalg.norm(world_from_tcp[:3, 3] - centre) > reach + gripper.finger_length + 0.1:
+        if near_at_start is not None and np.linalg.norm(world_from_tcp[:3, 3] - centre) > far:
             continue          # the whole gripper is far from the whole tape
-        local = (tape_surface - world_from_tcp[:3, 3]) @ world_from_tcp[:3, :3]
-        near = np.zeros((len(boxes), len(tape_surface)), bool)
-        for i, (lo, hi) in enumerate(boxes):
-            near[i] = np.all((local > lo - margin) & (local < hi + margin), axis=1)
+        near = _in_boxes((tape_surface - world_from_tcp[:3, 3]) @ world_from_tcp[:3, :3], boxes, margin)
         if near_at_start is None:
             near_at_start = near.any(axis=0)
             if np.any(near_at_start):
@@ -666,11 +662,7 @@ def _tape_maybe_near(qa: np.ndarray, qb: np.ndarray, steps: np.ndarray, tape_sur
     idx = np.flatnonzero(maybe)
     if len(idx):
         local = (tape_surface[None] - p[idx, None]) @ world_from_tcp[idx, :3, :3]      # (m, M, 3)
-        hit = np.zeros(len(idx), bool)
-        for lo, hi in boxes:
-            inside = (local > lo - margin - _TAPE_NEAR_SLACK_M) & (local < hi + margin + _TAPE_NEAR_SLACK_M)
-            hit |= np.any(np.all(inside, axis=2), axis=1)
-        maybe[idx] = hit
+        maybe[idx] = _in_boxes(local, boxes, margin + _TAPE_NEAR_SLACK_M).any(axis=(0, 2))
     return maybe
 
 
@@ -767,8 +759,7 @@ def _check_fingers_clear(tape: np.ndarray, start: np.ndarray, end: np.ndarray, g
     local0 = (tape - start[:3, 3]) @ start[:3, :3]                             # (M, 3)
     shift = np.linspace(0.0, 1.0, n + 1)[:, None] * ((end[:3, 3] - start[:3, 3]) @ start[:3, :3])
     local = local0[None] - shift[:, None]                                     # (n + 1, M, 3)
-    m = APPROACH_TAPE_MARGIN_M
-    inside = np.stack([np.all((local > lo - m) & (local < hi + m), axis=2) for lo, hi in boxes])   # (boxes, n + 1, M)
+    inside = _in_boxes(local, boxes, APPROACH_TAPE_MARGIN_M)                    # (boxes, n + 1, M)
     if np.any(inside):
         hit = inside.any(axis=2)                                              # (boxes, n + 1)
         first = int(np.argmax(hit.any(axis=0)))                               # the earliest sample
@@ -776,6 +767,12 @@ def _check_fingers_clear(tape: np.ndarray, start: np.ndarray, end: np.ndarray, g
         part = "palm" if i == 2 else "finger"
         raise PlanRefused("collision", f"the open gripper's {part} would hit the tape near "
                                        f"{_mm(tape[np.argmax(inside[i, first])])} mm on the approach")
+
+
+def _in_boxes(local: np.ndarray, boxes: list, margin: float) -> np.ndarray:
+    """(boxes, ...) bool: which points ``local`` (..., 3), in the boxes' frame, lie inside
+    each (lo, hi) box grown by ``margin`` [m]."""
+    return np.stack([np.all((local > lo - margin) & (local < hi + margin), axis=-1) for lo, hi in boxes])
 
 
 def _densify(points: np.ndarray, step: float) -> np.ndarray:

@@ -14,6 +14,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from tapecell.estimator.errors import TapecellError, TaskFailed
+from tapecell.estimator.result import Verdict
+from tapecell.estimator.verdict import END_UNEXPLAINED, PAST_END
 
 from .poses import pose6_to_matrix
 
@@ -63,10 +65,17 @@ def confirmed(distances: Sequence[float | None]) -> int | None:
     (a tip on the tape's body is tape as the true end is) are not told apart by which is
     closer: a simulated episode kept the one 0.8 mm from tape over the one 2.3 mm away,
     and it was 28 mm from the true end (the caller probes where the shapes disagree)."""
+    return _closest(distances, PROBE_MARGIN_M, alone=True)
+
+
+def _closest(distances: Sequence[float | None], margin: float, alone: bool) -> int | None:
+    """The hypothesis touched within PROBE_CONFIRM_M whose every rival touched at least
+    ``margin`` [m] farther (or not at all) and, with ``alone``, none within PROBE_CONFIRM_M;
+    else None."""
     order = sorted((d, k) for k, d in enumerate(distances) if d is not None)
     if not order or order[0][0] > PROBE_CONFIRM_M:
         return None
-    if len(order) > 1 and (order[1][0] <= PROBE_CONFIRM_M or order[1][0] < order[0][0] + PROBE_MARGIN_M):
+    if len(order) > 1 and ((alone and order[1][0] <= PROBE_CONFIRM_M) or order[1][0] < order[0][0] + margin):
         return None
     return order[0][1]
 
@@ -82,10 +91,7 @@ def clearly_closest(distances: Sequence[float | None]) -> int | None:
     """The hypothesis whose point the needle touched within PROBE_CONFIRM_M and every other's
     at least PROBE_WIDE_MARGIN_M farther (or not at all); else None. Only after the probes
     where the shapes disagree were inconclusive (see :func:`confirmed`)."""
-    order = sorted((d, k) for k, d in enumerate(distances) if d is not None)
-    if order and order[0][0] <= PROBE_CONFIRM_M and (len(order) == 1 or order[1][0] >= order[0][0] + PROBE_WIDE_MARGIN_M):
-        return order[0][1]
-    return None
+    return _closest(distances, PROBE_WIDE_MARGIN_M, alone=False)
 
 
 PAST_END_MAX_M = 0.025
@@ -103,9 +109,6 @@ def end_measurable(est: Any) -> bool:
     simulated episodes of earlier campaigns refused for an unexplained end, the needle made
     12 grasps (tips 0.2-5.7 mm off) and kept all the far ones (23-35 mm off: no tape at
     their tips) refused; none failed."""
-    from tapecell.estimator import Verdict
-    from tapecell.estimator.verdict import END_UNEXPLAINED, PAST_END
-
     return (est.verdict is Verdict.POOR_FIT and not est.alternatives
             and (PAST_END in est.verdict_reason or END_UNEXPLAINED in est.verdict_reason))
 

@@ -79,9 +79,10 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
     a2, t2, c2 = refine(chain, fields, mirrors(angles), silhouette_costs, pool, cfg)
     if c2 < cost:
         angles, trace, cost = a2, t2, c2
-    quads = chain.quads(angles)[0]
-    worst_px = max(c * f.target.area / f.outline_px for c, f in zip(evaluator.view_costs(quads), fields))
-    if thorough or cost > cfg.wide_cost or worst_px > cfg.wide_offset_px or misfit_px(evaluator, quads) > cfg.wide_misfit_px:
+    worst_px = max(c * f.target.area / f.outline_px
+                   for c, f in zip(evaluator.view_costs(chain.quads(angles)[0]), fields))
+    # (misfit_px reads the disagreement images view_costs just drew for these quads.)
+    if thorough or cost > cfg.wide_cost or worst_px > cfg.wide_offset_px or misfit_px(evaluator) > cfg.wide_misfit_px:
         # A poor fit: only these pay for a wider search (a finer, larger beam and the
         # other branches next to the winner); it replaces the first result only when its
         # silhouette cost is clearly lower.
@@ -109,17 +110,16 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
     return angles, trace, evaluator.evaluations, fallback, hypotheses(chain, pool, winner), tip
 
 
-def misfit_px(evaluator: CostEvaluator, quads: np.ndarray) -> float:
+def misfit_px(evaluator: CostEvaluator, quads: np.ndarray | None = None) -> float:
     """Half the thickness [px] of the thickest region where a view and the model of
     ``quads`` (m, 4, 3) disagree (observed tape the model leaves out, or model over the
-    background), over all views: its largest distance to the region's edge."""
-    worst = 0.0
-    for model, t in zip(evaluator.model_masks(quads), evaluator.targets):
-        if t.valid is not None:
-            cv2.bitwise_and(model, t.valid, dst=model)
-        diff = np.pad(cv2.bitwise_xor(model, t.observed), 1)
-        worst = max(worst, float(cv2.distanceTransform(diff, cv2.DIST_L2, 3).max()))
-    return worst
+    background), over all views: its largest distance to the region's edge. Without
+    ``quads``: of the chain ``evaluator`` evaluated last (its disagreement images, not
+    rendered again)."""
+    if quads is not None:
+        evaluator.view_costs(quads)
+    return max(float(cv2.distanceTransform(np.pad(diff, 1), cv2.DIST_L2, 3).max())
+               for diff in evaluator.last_diffs())
 
 
 _warmed = False

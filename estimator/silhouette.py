@@ -254,6 +254,12 @@ class CostEvaluator:
                 out[b, k] = self._view_xor(k, px[b]) / t.area
         return np.array([combine(row) for row in out])
 
+    def last_diffs(self) -> list[np.ndarray]:
+        """Each view's disagreement image (ROI-sized uint8: the model on counted pixels XOR
+        the observed silhouette) of the last chain evaluated: the buffers the last
+        :meth:`view_costs` (or the last chain of :meth:`costs`) wrote, not copies."""
+        return self._diff
+
     def model_masks(self, quads_world: np.ndarray) -> list[np.ndarray]:
         """The model silhouettes (ROI-sized uint8 images) for the given quads."""
         return [render(project_quads(t.camera, self._seen(t, quads_world)), t.shape, t.x0, t.y0)

@@ -224,6 +224,13 @@ def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: S
     return out
 
 
+def _unexplained_mask(observed: np.ndarray, model: np.ndarray) -> np.ndarray:
+    """uint8 0/1: the observed tape farther than UNEXPLAINED_MARGIN_PX from the model's
+    silhouette (uint8 0/1 crops alike)."""
+    k = np.ones((2 * UNEXPLAINED_MARGIN_PX + 1,) * 2, np.uint8)
+    return cv2.bitwise_and(observed, cv2.bitwise_not(cv2.dilate(model, k)) & 1)
+
+
 def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
                    trunk_px: np.ndarray | None = None) -> float:
     """The longest region [px] (its bounding box's longer side) of observed tape farther than
@@ -247,14 +254,13 @@ def unexplained(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
     long slivers on good fits, and it caught no wrong fit.)"""
     if not np.all(np.isfinite(tip_px)):
         return 0.0, 0.0
-    k = np.ones((2 * UNEXPLAINED_MARGIN_PX + 1,) * 2, np.uint8)
     h, w = observed.shape
     u, v = int(round(tip_px[0])), int(round(tip_px[1]))
     r = END_WINDOW_PX
     a0, a1, b0, b1 = max(0, v - r), min(h, v + r + 1), max(0, u - r), min(w, u + r + 1)
     if a1 <= a0 or b1 <= b0:
         return 0.0, 0.0
-    extra = cv2.bitwise_and(observed, cv2.bitwise_not(cv2.dilate(model, k)) & 1)
+    extra = _unexplained_mask(observed, model)
     if cv2.countNonZero(extra[a0:a1, b0:b1]) == 0:
         return 0.0, 0.0
     _, labels, stats, _ = cv2.connectedComponentsWithStats(extra, connectivity=8)
@@ -312,9 +318,7 @@ observed end, 100 px beyond the model's, was unexplained.)"""
 def _explained(observed: np.ndarray, model: np.ndarray) -> bool:
     """Is every observed pixel but SLIVER_STRAY_PX within UNEXPLAINED_MARGIN_PX of the
     model's silhouette? uint8 0/1 crops alike."""
-    k = np.ones((2 * UNEXPLAINED_MARGIN_PX + 1,) * 2, np.uint8)
-    stray = cv2.bitwise_and(observed, cv2.bitwise_not(cv2.dilate(model, k)) & 1)
-    return cv2.countNonZero(stray) <= SLIVER_STRAY_PX
+    return cv2.countNonZero(_unexplained_mask(observed, model)) <= SLIVER_STRAY_PX
 
 
 def _near_background(observed: np.ndarray, x: int, y: int, r: int) -> bool:
@@ -397,18 +401,16 @@ def _clear_of_border(view: View, observed: np.ndarray, origin: tuple[int, int], 
     """Is no observed tape pixel on the image's border within BORDER_CLEAR_PX of the
     projections of ``points`` (k, 3)? ``observed``: the view's silhouette crop whose top-left
     pixel is ``origin``."""
-    h, w = observed.shape
-    x0, y0 = origin
     cam = view.camera
-    border = []
-    for on_border, rows, cols in ((y0 == 0, slice(0, 1), slice(None)), (y0 + h >= cam.height, slice(h - 1, h), slice(None)),
-                                  (x0 == 0, slice(None), slice(0, 1)), (x0 + w >= cam.width, slice(None), slice(w - 1, w))):
-        if on_border:
-            ys, xs = np.nonzero(observed[rows, cols])
-            border.append(np.column_stack([xs + (cols.start or 0) + x0, ys + (rows.start or 0) + y0]))
-    border = np.vstack(border) if border else np.zeros((0, 2))
-    if not len(border):
+    (h, w), (x0, y0) = observed.shape, origin
+    if x0 > 0 and y0 > 0 and x0 + w < cam.width and y0 + h < cam.height:
+        return True                       # the crop touches no image border
+    ys, xs = np.nonzero(observed)
+    xs, ys = xs + x0, ys + y0
+    on_border = (xs == 0) | (ys == 0) | (xs == cam.width - 1) | (ys == cam.height - 1)
+    if not on_border.any():
         return True
+    border = np.column_stack([xs[on_border], ys[on_border]])
     uv = cam.project(points)
     uv = uv[np.all(np.isfinite(uv), axis=1)]
     if not len(uv):

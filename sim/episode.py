@@ -334,9 +334,9 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
             best = k
             reason = (f"hypothesis {best} confirmed by the needle where the hypotheses disagree "
                       f"(its tip touched {1e3 * found[k]:.1f} mm away)")
-        elif k is None and clearly_closest(found) is not None:
+        elif k is None and (closest := clearly_closest(found)) is not None:
             # Nothing told where the shapes disagree: the one touched clearly closest.
-            best = clearly_closest(found)
+            best = closest
             reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip, every "
                       f"other {PROBE_WIDE_MARGIN_M * 1e3:.1f} mm farther or more)")
     if best is None:

@@ -208,20 +208,12 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
     onto the middle of the tape's end; returns the estimate with the hypothesis the needle
     confirms as the answer (verdict ok), or raises :class:`TaskFailed` (nothing moved but
     by hand). The arm is connected for the probe only, and freedrive ends on every path."""
-    from tapecell.cli.options import confirm_robot
-    from tapecell.cell.probe import PROBE_CONFIRM_M, adopt, confirmed, guided_probe
-    from tapecell.cell.ur import URArm
+    from tapecell.cell.probe import PROBE_CONFIRM_M, adopt, confirmed
 
     tips = [est.tip_position] + [a.tip_position for a in est.alternatives]
-    confirm_robot(cfg.robot.host, cfg.robot.port, [
-        f"the estimate is {est.verdict.value} ({len(tips)} hypotheses of the tape's end): start freedrive (teach "
-        "mode); the arm's brakes release and it follows your hand, making no motion of its own",
-        "record the needle tip when you press Enter with it on the middle of the tape's end; freedrive then ends",
-        "then plan the grasp for the hypothesis the needle confirms, show it and ask again before moving"], yes)
-    arm = URArm.from_config(cfg, cfg.tools.needle.flange_from_tcp)
-    with arm:
-        points = guided_probe(arm, cfg.tools.needle.flange_from_tcp, ["tip"], prompt, log)
-    touched = np.asarray(points[0].position, float)
+    touched = _touch_end(cfg, yes, f"the estimate is {est.verdict.value} ({len(tips)} hypotheses of the tape's end)",
+                         "then plan the grasp for the hypothesis the needle confirms, show it and ask again before "
+                         "moving", prompt, log)
     distances = [float(np.linalg.norm(touched - t)) for t in tips]
     story.add("probes", None, [{"label": f"hypothesis {k}", "aimed": t, "touched": touched, "t": None}
                                for k, t in enumerate(tips)])
@@ -237,6 +229,25 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
     return settled
 
 
+def _touch_end(cfg, yes: bool, what: str, then: str, prompt=None, log=print) -> np.ndarray:
+    """After the operator's confirmation (``what`` the estimate is, ``then`` what follows):
+    freedrive, the operator guides the needle onto the middle of the tape's end and presses
+    Enter; returns the needle tip there (3,) [m]. The arm is connected for this only, and
+    freedrive ends on every path."""
+    from tapecell.cell.probe import guided_probe
+    from tapecell.cell.ur import URArm
+
+    confirm_robot(cfg.robot.host, cfg.robot.port, [
+        f"{what}: start freedrive (teach mode); the arm's brakes release and it follows your hand, making no "
+        "motion of its own",
+        "record the needle tip when you press Enter with it on the middle of the tape's end; freedrive then ends",
+        then], yes)
+    arm = URArm.from_config(cfg, cfg.tools.needle.flange_from_tcp)
+    with arm:
+        points = guided_probe(arm, cfg.tools.needle.flange_from_tcp, ["tip"], prompt, log)
+    return np.asarray(points[0].position, float)
+
+
 def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=print):
     """Freedrive measurement of the tape's end for a ``poor_fit`` whose end the views place
     only roughly (:func:`tapecell.cell.probe.end_measurable`: tape past the model's end, or
@@ -248,20 +259,12 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
     ends by stepping the needle past the tip."""
     import dataclasses
 
-    from tapecell.cli.options import confirm_robot
-    from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, guided_probe, measured_end
-    from tapecell.cell.ur import URArm
+    from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, measured_end
     from tapecell.estimator import Verdict
 
-    confirm_robot(cfg.robot.host, cfg.robot.port, [
-        f"the estimate is {est.verdict.value} ({est.verdict_reason}): start freedrive (teach mode); the arm's "
-        "brakes release and it follows your hand, making no motion of its own",
-        "record the needle tip when you press Enter with it on the middle of the tape's end; freedrive then ends",
-        "then plan the grasp at the end the needle measured, show it and ask again before moving"], yes)
-    arm = URArm.from_config(cfg, cfg.tools.needle.flange_from_tcp)
-    with arm:
-        points = guided_probe(arm, cfg.tools.needle.flange_from_tcp, ["tip"], prompt, log)
-    touched = np.asarray(points[0].position, float)
+    touched = _touch_end(cfg, yes, f"the estimate is {est.verdict.value} ({est.verdict_reason})",
+                         "then plan the grasp at the end the needle measured, show it and ask again before moving",
+                         prompt, log)
     tip, trunk = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)[:, 0]
     story.add("probes", None, [{"label": "end", "aimed": tip, "touched": touched, "t": None}])
     end = measured_end(tip, trunk, touched)
