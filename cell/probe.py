@@ -99,6 +99,18 @@ PAST_END_MAX_M = 0.025
 (the simulated cell's last step past the end; the real cell's operator's touch)."""
 
 
+def hypotheses_to_probe(est: Any) -> bool:
+    """Does the needle settle ``est`` (an ``estimator.Estimate``) by touching its hypotheses'
+    tips (its own and its alternatives')? Where too few cameras see the end ("hidden") and
+    where distinct shapes explain the views nearly as well ("ambiguous"): each hypothesis
+    may be the tape, only the views cannot tell. (Also probing the alternatives of a
+    ``poor_fit`` for its end was tried: two of them, 38 and 83 mm from the end, lay on the
+    tape's body near its edge with tape at their tips and corners and none past them, and
+    simulated grasps failed; a fit that explains no view well has alternatives that need not
+    be near the tape's shape at all.)"""
+    return est.verdict is Verdict.HIDDEN or (est.verdict is Verdict.AMBIGUOUS and bool(est.alternatives))
+
+
 def end_measurable(est: Any) -> bool:
     """Does the needle settle ``est`` (an ``estimator.Estimate``) by measuring its end? For
     a ``poor_fit`` whose views show tape past the model's end, or whose free end the model
@@ -111,6 +123,45 @@ def end_measurable(est: Any) -> bool:
     their tips) refused; none failed."""
     return (est.verdict is Verdict.POOR_FIT and not est.alternatives
             and (PAST_END in est.verdict_reason or END_UNEXPLAINED in est.verdict_reason))
+
+
+PROBE_CORNER_M = 0.006
+"""Before the simulated cell acts on a tip the needle confirmed, it touches the tip's two
+corners (the paper's tip_left, tip_right, ``inset`` inside the end and the edges): each must
+be tape within this distance of the point [m] (a little more than PROBE_CONFIRM_M: a twist
+a few degrees off moves a corner along the normal). A "tip" at the tape's side edge, or on
+its body with the end turned away, leaves a corner in the air: simulated episodes kept such
+tips (touched within 0.3 mm, nothing 6 mm past them), 16 and 22 mm from the end, and failed;
+with the corners probed both are refused (one corner untouched). Good tips touched their
+corners within 5.3 mm in 150 simulated episodes."""
+
+
+def corners_on_tape(distances: Sequence[float | None]) -> bool:
+    """Were both tip corners touched within PROBE_CORNER_M (see there)?"""
+    return all(d is not None and d <= PROBE_CORNER_M for d in distances)
+
+
+REFIT_TOUCH_MAX_M = 0.012
+"""A needle sent to a tip that touched tape farther than PROBE_CONFIRM_M from it, but within
+this [m], refits the shape through the touch (:func:`tapecell.estimator.touch.refit`): the
+views leave such an end a few millimetres off (its depth where one camera sees it, an end
+hooked over); the refitted tip is then probed afresh."""
+REFIT_COST_RATIO = 2.0
+"""A refit whose silhouette cost (eq. 11) exceeds this multiple of the shape it started
+from explains the views too badly to be probed."""
+
+
+def refit_acceptable(refitted: Any, before: Any) -> bool:
+    """May the needle probe ``refitted`` (an ``estimator.Estimate`` refitted through a
+    touch) to confirm it? Its views must be explained about as well as ``before``'s (the
+    shape it started from, or its cost) and as a whole: "ok", "hidden", or a ``poor_fit`` for
+    its end alone (tape past it, an end left unexplained), never ambiguous."""
+    cost = before if isinstance(before, (int, float)) else before.cost
+    if refitted.cost > REFIT_COST_RATIO * cost:
+        return False
+    if refitted.verdict is Verdict.POOR_FIT:
+        return PAST_END in refitted.verdict_reason or END_UNEXPLAINED in refitted.verdict_reason
+    return refitted.verdict in (Verdict.OK, Verdict.HIDDEN)
 
 
 def measured_end(tip_position: np.ndarray, trunk: np.ndarray, touched: np.ndarray) -> np.ndarray | None:

@@ -83,11 +83,13 @@ def _strip_for(spec: TapeSpec, cfg: FitConfig) -> Strip:
     return strip
 
 
-def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitConfig = DEFAULT):
+def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitConfig = DEFAULT, extra=None):
     """The strip fitted to the views from the plate chain ``angles`` (n, 3). Returns
     output(frame_weight) -> the plate chain's angles (n, 3) fitted in 3-D to the strip: its
     corners at the model's nodes (the tip's weighted) and, by ``frame_weight``, its tip
-    frame to the strip's (see :func:`_tip_frame_rows`)."""
+    frame to the strip's (see :func:`_tip_frame_rows`). ``extra(corners, J)`` -> (residuals,
+    Jacobian): more rows on the strip's fine corners in its fit to the views (the touched
+    points of :mod:`estimator.touch`)."""
     spec = chain.spec
     strip = _strip_for(spec, cfg)
     k, n = cfg.strip_plates, spec.n
@@ -101,7 +103,8 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
     x0 = np.zeros(strip.T.shape[1])
     x0[:3] = angles[0]
     x = levenberg_marquardt_one(corner_fit(strip.corners, target), x0, 20, 1e-4)
-    x = levenberg_marquardt_one(lambda y: strip.residuals(fields, y), x, cfg.strip_iterations, cfg.strip_rtol)
+    fit = (lambda y: strip.residuals(fields, y)) if extra is None else (lambda y: _with_rows(strip, fields, y, extra))
+    x = levenberg_marquardt_one(fit, x, cfg.strip_iterations, cfg.strip_rtol)
     fine = forward_kinematics(strip.fine, strip.angles(x))
     # The output chain: the plate chain closest to the strip at the model's nodes.
     goal = np.concatenate([fine.nodes[::k], fine.left[::k], fine.right[::k]])
@@ -109,12 +112,19 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
     w[[n, 2 * n + 1, 3 * n + 2]] = cfg.strip_tip_weight
 
     def output(frame_weight: float) -> np.ndarray:
-        extra = _tip_frame_rows(chain, fine.frames[-1], frame_weight) if frame_weight > 0 else None
-        fun = corner_fit(chain.corners, goal, w, extra)
+        frame_rows = _tip_frame_rows(chain, fine.frames[-1], frame_weight) if frame_weight > 0 else None
+        fun = corner_fit(chain.corners, goal, w, frame_rows)
         return levenberg_marquardt_one(fun, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
 
     output.tip = (fine.nodes[-1].copy(), fine.frames[-1].copy())   # the strip's end frame
     return output
+
+
+def _with_rows(strip: Strip, fields: list[Field], x: np.ndarray, extra):
+    """:meth:`Strip.residuals` plus ``extra``'s rows on the strip's fine corners."""
+    r, J, cost = strip.residuals(fields, x)
+    re, Je = extra(*strip.corners(x))
+    return np.concatenate([r, re]), np.vstack([J, Je]), cost + 0.5 * re @ re
 
 
 def _tip_frame_rows(chain: Chain, tip_frame: np.ndarray, weight: float):

@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable
+from tapecell.cell.probe import (PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable,
+                                 hypotheses_to_probe)
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -128,13 +129,14 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         # (SimCell.set_tape_sleep). Not earlier: the tape still creeps by some micrometres
         # after settling, and the captures see it as they always did.
         cell.set_tape_sleep(True)
-        if est.verdict is Verdict.HIDDEN or (est.verdict is Verdict.AMBIGUOUS and est.alternatives):
+        if hypotheses_to_probe(est):
             # Two shapes explain the views, or too few cameras see the end: the needle,
             # which the cell carries for this, touches each hypothesis' tip (and goes past
             # it); the one it confirms (and only one) is kept.
             t1 = time.perf_counter()
             probes: list[dict] = []
-            est, doc["probed"] = resolve_by_probing(cell, sim_arm, est, capture.tape.width, probes)
+            est, doc["probed"] = resolve_by_probing(cell, sim_arm, est, capture.tape.width, probes, capture,
+                                                    doc)
             story.add("probes", float(cell.data.time), probes)
             story.add("estimate", float(cell.data.time), (capture, est), "after probing")
             times["probe"] = time.perf_counter() - t1
@@ -145,7 +147,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             # beyond it; where it still touches tape, there the end is at least.
             t1 = time.perf_counter()
             probes = []
-            est, doc["probed_past_end_mm"] = measure_end_by_probing(cell, sim_arm, est, capture.tape.width, probes)
+            est, doc["probed_past_end_mm"] = measure_end_by_probing(cell, sim_arm, est, capture.tape.width, probes,
+                                                                       capture, doc)
             story.add("probes", float(cell.data.time), probes)
             story.add("estimate", float(cell.data.time), (capture, est), "after probing")
             times["probe"] = time.perf_counter() - t1
@@ -257,91 +260,175 @@ PROBE_BEYOND_M = 0.006
 the tape [m]: tape there means that end is not the tape's."""
 
 
-def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None):
+class _Needle:
+    """The needle on the simulated arm, for the probes of one episode: mounted on entry;
+    parked, the gripper remounted and opened on exit. ``probes``, when given, gets each probe
+    (label, aimed point, touched point or None, cell time) for the recording; ``notes`` (the
+    episode's result), ``probed_corners_mm``: the corners' distances [mm] in order."""
+
+    def __init__(self, cell, sim_arm, probes: list | None, notes: dict | None = None):
+        from tapecell.cell.probe import ProbeParams
+        from .prober import SimProber
+
+        self.cell, self.sim_arm, self.probes, self.notes = cell, sim_arm, probes, notes
+        self.params = ProbeParams()
+        sim_arm.select_tool("needle")
+        self.prober = SimProber(cell, sim_arm, self.params)
+
+    def __enter__(self) -> "_Needle":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.sim_arm.park()
+        self.sim_arm.select_tool("gripper")
+        self.sim_arm.open_gripper()
+
+    def touch(self, label: str, target: np.ndarray, R: np.ndarray) -> tuple[float, np.ndarray] | None:
+        """(distance [m] from ``target`` to where the needle touched tape, that point),
+        approaching along the tape's normal (``R``'s third column) from the robot's side,
+        else from the other side when that side is blocked (the needle's shaft already
+        touching the tape at the start, or no reach); None when nothing was touched."""
+        from tapecell.cell.probe import ProbeError, approach_normal
+        from .arm import SimArmError
+        from .ur5e import IKError
+
+        target = np.asarray(target, float)
+        first = approach_normal(target, R[:, 2], -target)
+        for normal in (first, -first):
+            touched = None
+            try:
+                touched = self.prober.probe(label, target, normal).position
+            except Exception as e:    # noqa: BLE001 - an unreachable side is simply not a touch
+                if not isinstance(e, (ProbeError, IKError, SimArmError)):
+                    raise
+            if self.probes is not None:
+                self.probes.append({"label": label, "aimed": target, "touched": touched, "t": float(self.cell.data.time)})
+            if touched is None:
+                continue
+            d = float(np.linalg.norm(touched - target))
+            if d < 0.8 * self.params.standoff:
+                return d, touched
+        return None
+
+    def distance(self, label: str, target: np.ndarray, R: np.ndarray) -> float | None:
+        """:meth:`touch`'s distance alone."""
+        hit = self.touch(label, target, R)
+        return None if hit is None else hit[0]
+
+    def corners(self, tip: np.ndarray, R: np.ndarray, width: float) -> list[float | None]:
+        """:meth:`distance` at the two corners of the end at ``tip`` (frame ``R``)."""
+        from tapecell.cell.probe import tape_points
+
+        points = tape_points(tip, R, width, self.params.inset)
+        found = [self.distance(f"corner {side}", points[f"tip_{side}"], R) for side in ("left", "right")]
+        if self.notes is not None:
+            self.notes.setdefault("probed_corners_mm", []).extend(
+                None if d is None else round(1e3 * d, 2) for d in found)
+        return found
+
+    def corners_confirm(self, tip: np.ndarray, R: np.ndarray, width: float) -> bool:
+        """Are both corners of the end at ``tip`` tape (:func:`tapecell.cell.probe.corners_on_tape`)?"""
+        from tapecell.cell.probe import corners_on_tape
+
+        return corners_on_tape(self.corners(tip, R, width))
+
+
+def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None, capture: Capture | None = None,
+                       notes: dict | None = None):
     """Probe the tips of an estimate that is not ok (ambiguous or hidden) and of its
     alternatives with the needle, and past each touched tip (tape there: not the end).
     Returns (the estimate to act on, with verdict "ok" when exactly one hypothesis was
     confirmed, else unchanged; per hypothesis the distance [mm] from the aimed point to
-    the touched one, None where nothing was touched). The gripper is remounted and opened
+    the touched one, None where nothing was touched). Where none is confirmed but exactly
+    one hypothesis' tip touched tape a few millimetres off (within REFIT_TOUCH_MAX_M), and
+    ``capture`` is given, that shape is refitted through the touch and the refit's tip
+    probed the same way (:func:`_refit_and_probe`). The gripper is remounted and opened
     afterwards. ``probes``, when given, gets each probe (label, aimed point, touched point or
     None, cell time) for the recording."""
-    from tapecell.cell.probe import ProbeError, ProbeParams, adopt, approach_normal, confirmed, tape_points
-    from .arm import SimArmError
-    from .prober import SimProber
-    from .ur5e import IKError
+    from tapecell.cell.probe import REFIT_TOUCH_MAX_M, adopt, confirmed, tape_points
 
-    params = ProbeParams()
     hypotheses = [(est.tip_position, est.tip_rotation, None)]
     hypotheses += [(a.tip_position, a.tip_rotation, a) for a in est.alternatives]
-    sim_arm.select_tool("needle")
-    prober = SimProber(cell, sim_arm, params)
-    def touch(label: str, target: np.ndarray, R: np.ndarray):
-        """Distance [m] from ``target`` to where the needle touched tape, approaching along
-        the tape's normal from the robot's side, else from the other side when that side
-        is blocked (the needle's shaft already touching the tape at the start, or no
-        reach); None when nothing was touched."""
-        first = approach_normal(target, R[:, 2], -np.asarray(target))
-        for normal in (first, -first):
-            touched = None
-            try:
-                touched = prober.probe(label, target, normal).position
-            except Exception as e:    # noqa: BLE001 - an unreachable side is simply not a touch
-                if not isinstance(e, (ProbeError, IKError, SimArmError)):
-                    raise
-            if probes is not None:
-                probes.append({"label": label, "aimed": target, "touched": touched, "t": float(cell.data.time)})
-            if touched is None:
-                continue
-            d = float(np.linalg.norm(touched - target))
-            if d < 0.8 * params.standoff:
-                return d
-        return None
-
-    found = []
-    try:
-        for k, (tip, R, _) in enumerate(hypotheses):
-            found.append(touch(f"hypothesis {k}", tape_points(tip, R, width, params.inset)["tip"], R))
+    with _Needle(cell, sim_arm, probes, notes) as needle:
+        inset = needle.params.inset
+        hits = [needle.touch(f"hypothesis {k}", tape_points(tip, R, width, inset)["tip"], R)
+                for k, (tip, R, _) in enumerate(hypotheses)]
+        found = [None if h is None else h[0] for h in hits]
         # A hypothesis whose "tip" lies on the tape's body touches tape too: the needle
         # also goes a little beyond each touched one's end, where the true end finds nothing.
         near = [k for k, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
-        if near:
-            for k in near:
-                tip, R, _ = hypotheses[k]
-                past = touch(f"beyond hypothesis {k}", tip + PROBE_BEYOND_M * R[:, 0], R)
-                if past is not None and past <= PROBE_CONFIRM_M:
-                    found[k] = None          # tape beyond its end: not the end
-    finally:
-        sim_arm.park()
-        sim_arm.select_tool("gripper")
-        sim_arm.open_gripper()
-    report = [None if d is None else round(1e3 * d, 2) for d in found]
-    best, reason = confirmed(found), ""
-    if best is not None:
-        reason = f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip)"
-    elif sum(d is not None and d <= PROBE_CONFIRM_M for d in found) > 1:
-        # Several tips lie on the tape (a fold's edge is tape as the true end is): probe
-        # where the shapes disagree instead, each at the point of its own end farthest from
-        # every other hypothesis; the one shape whose point is tape, and whose rivals' are
-        # not, is kept (its tip touched too).
-        sim_arm.select_tool("needle")
-        try:
-            k = _discriminate(cell, hypotheses, est, touch)
-        finally:
-            sim_arm.park()
-            sim_arm.select_tool("gripper")
-            sim_arm.open_gripper()
-        if k is not None and found[k] is not None and found[k] <= PROBE_CONFIRM_M:
-            best = k
-            reason = (f"hypothesis {best} confirmed by the needle where the hypotheses disagree "
-                      f"(its tip touched {1e3 * found[k]:.1f} mm away)")
-        elif k is None and (closest := clearly_closest(found)) is not None:
-            # Nothing told where the shapes disagree: the one touched clearly closest.
-            best = closest
-            reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip, every "
-                      f"other {PROBE_WIDE_MARGIN_M * 1e3:.1f} mm farther or more)")
+        for k in near:
+            tip, R, _ = hypotheses[k]
+            past = needle.distance(f"beyond hypothesis {k}", tip + PROBE_BEYOND_M * R[:, 0], R)
+            if past is not None and past <= PROBE_CONFIRM_M:
+                found[k] = None          # tape beyond its end: not the end
+        report = [None if d is None else round(1e3 * d, 2) for d in found]
+        best, reason = confirmed(found), ""
+        if best is None and len(near) > 1:
+            # Several tips lie on the tape (a fold's edge is tape as the true end is): probe
+            # where the shapes disagree instead, each at the point of its own end farthest from
+            # every other hypothesis; the one shape whose point is tape, and whose rivals' are
+            # not, is kept (its tip touched too).
+            k = _discriminate(cell, hypotheses, est, needle.distance)
+            if k is not None and found[k] is not None and found[k] <= PROBE_CONFIRM_M:
+                best = k
+                reason = (f"hypothesis {best} confirmed by the needle where the hypotheses disagree "
+                          f"(its tip touched {1e3 * found[k]:.1f} mm away)")
+            elif k is None and (closest := clearly_closest(found)) is not None:
+                # Nothing told where the shapes disagree: the one touched clearly closest.
+                best = closest
+                reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip, every "
+                          f"other {PROBE_WIDE_MARGIN_M * 1e3:.1f} mm farther or more)")
+        elif best is not None:
+            reason = f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip)"
+        if best is not None and not needle.corners_confirm(hypotheses[best][0], hypotheses[best][1], width):
+            best = None                  # a corner in the air: the "tip" is not the tape's end
+        off = [k for k, h in enumerate(hits) if h is not None and PROBE_CONFIRM_M < h[0] <= REFIT_TOUCH_MAX_M]
+        if best is None and not near and len(off) == 1 and capture is not None:
+            # One tip touched tape a few mm off, none on it: refit that shape through the touch.
+            k = off[0]
+            angles = est.angles if k == 0 else est.alternatives[k - 1].angles
+            cost = est.cost if k == 0 else est.alternatives[k - 1].cost
+            refitted = _refit_and_probe(needle, capture, angles, cost, hits[k], PROBE_BEYOND_M,
+                                        f"hypothesis {k}'s tip")
+            if refitted is not None:
+                return refitted, report
     if best is None:
         return est, report
     return adopt(est, best, est_spec(cell), reason), report
+
+
+def _refit_and_probe(needle: _Needle, capture: Capture, angles: np.ndarray, cost: float, hit, beyond: float,
+                     what: str):
+    """The shape ``angles`` (its silhouette cost ``cost``) refitted through the needle's
+    touch ``hit`` (distance [m], point) near its end (:func:`tapecell.estimator.touch.refit`,
+    the end's centre ``inset`` inside it at the touch), when the refit still explains the
+    views (:func:`tapecell.cell.probe.refit_acceptable`) and the needle, sent to the refit's
+    tip, touches tape within PROBE_CONFIRM_M of it and none ``beyond`` [m] past it: then with
+    verdict "ok"; else None."""
+    from tapecell.cell.probe import REFIT_TOUCH_MAX_M, refit_acceptable, tape_points
+    from tapecell.estimator.touch import refit
+
+    refitted = refit(capture, angles, hit[1], 2 * needle.params.inset)
+    if not refit_acceptable(refitted, cost):
+        return None
+    tip, R = refitted.tip_position, refitted.tip_rotation
+    at_tip = needle.distance("refitted tip", tape_points(tip, R, capture.tape.width, needle.params.inset)["tip"], R)
+    if at_tip is None or at_tip > PROBE_CONFIRM_M:
+        return None
+    past = needle.distance("beyond the refitted tip", tip + beyond * R[:, 0], R)
+    if past is not None and past <= REFIT_TOUCH_MAX_M:
+        return None             # tape near the point past the end (a touch on the tape's body)
+    if not needle.corners_confirm(tip, R, capture.tape.width):
+        return None
+    reason = (f"refitted through the needle's touch {1e3 * hit[0]:.1f} mm from {what}: tape at the new tip "
+              f"({1e3 * at_tip:.1f} mm) and none {1e3 * beyond:.0f} mm past it")
+    return dataclasses.replace(refitted, verdict=Verdict.OK, verdict_reason=reason)
+
+
+def report_steps(found: list[float]) -> list[float]:
+    """The steps past the end [m] that were tape, as reported [mm]."""
+    return [round(d * 1e3, 1) for d in found]
 
 
 PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, PAST_END_MAX_M)
@@ -349,53 +436,39 @@ PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, PAST_END_MAX_M)
 trunk]; it stops at the first step without tape."""
 
 
-def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None = None):
+def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None = None, capture: Capture | None = None,
+                           notes: dict | None = None):
     """For a ``poor_fit`` estimate whose views show tape past its end or do not explain
     its end (see :func:`tapecell.cell.probe.end_measurable`): the needle touches
     the estimate's tip (it must be tape, within PROBE_CONFIRM_M), then points on the
     centre line PAST_END_STEPS_M beyond it, until one finds no tape there. Returns (the
     estimate with verdict "ok" and its tip moved to the last point that was tape, or kept
     when the first step found none; unchanged when the tip is not tape or tape goes on
-    past the last step; the steps [mm] that were tape)."""
-    from tapecell.cell.probe import ProbeError, ProbeParams, approach_normal, tape_points
-    from .arm import SimArmError
-    from .prober import SimProber
-    from .ur5e import IKError
+    past the last step; the steps [mm] that were tape). Where the tip's probe touched tape a
+    few millimetres off (within REFIT_TOUCH_MAX_M) and ``capture`` is given, the shape is
+    refitted through the touch and its new tip probed (:func:`_refit_and_probe`, nothing
+    PAST_END_STEPS_M[0] past it)."""
+    from tapecell.cell.probe import REFIT_TOUCH_MAX_M, tape_points
 
-    params = ProbeParams()
     tip, R = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)
-    sim_arm.select_tool("needle")
-    prober = SimProber(cell, sim_arm, params)
-
-    def tape_at(label: str, target: np.ndarray) -> bool:
-        first = approach_normal(target, R[:, 2], -target)
-        for normal in (first, -first):
-            touched = None
-            try:
-                touched = prober.probe(label, target, normal).position
-            except Exception as e:    # noqa: BLE001 - an unreachable side is simply not a touch
-                if not isinstance(e, (ProbeError, IKError, SimArmError)):
-                    raise
-            if probes is not None:
-                probes.append({"label": label, "aimed": target, "touched": touched, "t": float(cell.data.time)})
-            if touched is not None and np.linalg.norm(touched - target) < 0.8 * params.standoff:
-                return bool(np.linalg.norm(touched - target) <= PROBE_CONFIRM_M)
-        return False
-
     found: list[float] = []
-    at_tip = False
-    try:
-        at_tip = tape_at("tip", tape_points(tip, R, width, params.inset)["tip"])
+    with _Needle(cell, sim_arm, probes, notes) as needle:
+        hit = needle.touch("tip", tape_points(tip, R, width, needle.params.inset)["tip"], R)
+        at_tip = hit is not None and hit[0] <= PROBE_CONFIRM_M
         if at_tip:
             for d in PAST_END_STEPS_M:
-                if not tape_at(f"past the end +{d * 1e3:.0f} mm", tip + d * R[:, 0]):
+                h = needle.touch(f"past the end +{d * 1e3:.0f} mm", tip + d * R[:, 0], R)
+                if h is None or h[0] > PROBE_CONFIRM_M:
                     break
                 found.append(d)
-    finally:
-        sim_arm.park()
-        sim_arm.select_tool("gripper")
-        sim_arm.open_gripper()
-    report = [round(d * 1e3, 1) for d in found]
+            if len(found) < len(PAST_END_STEPS_M) and not needle.corners_confirm(
+                    tip + (found[-1] if found else 0.0) * R[:, 0], R, width):
+                return est, report_steps(found)     # a corner in the air: not the end
+        elif hit is not None and hit[0] <= REFIT_TOUCH_MAX_M and capture is not None:
+            refitted = _refit_and_probe(needle, capture, est.angles, est.cost, hit, PAST_END_STEPS_M[0], "the tip")
+            if refitted is not None:
+                return refitted, []
+    report = report_steps(found)
     if not at_tip or len(found) == len(PAST_END_STEPS_M):
         return est, report          # no tape at the tip, or tape as far as the needle looked
     if not found:

@@ -336,6 +336,49 @@ def test_probe_that_confirms_no_hypothesis_moves_nothing(real_like, monkeypatch,
     assert "teachMode" in names and "endTeachMode" in names
 
 
+def test_probe_refits_a_hidden_end_through_the_touch_then_grasps(real_like, monkeypatch, capsys):
+    """--execute --probe on a "hidden" estimate whose end is some 7 mm off (the views left
+    its depth open): the operator's touch on the tape's end confirms no hypothesis, but lies
+    a few mm from the one there is; the shape is refitted through the touch, still explains
+    the views, and is grasped."""
+    import dataclasses
+
+    import numpy as np
+    from fakes import FakeRobot, install_fake_rtde
+
+    import tapecell.estimator as estimator
+    from tapecell.estimator import Verdict, forward_kinematics
+
+    images, cameras = real_like
+    real_estimate = estimator.estimate
+
+    def hidden_and_off(capture, *a, **k):
+        est = real_estimate(capture, *a, **k)
+        angles = est.angles.copy()
+        angles[-1, 1] += 0.25                    # the last plate bent: its end ~7 mm off
+        shape = forward_kinematics(capture.tape, angles)
+        return dataclasses.replace(est, angles=angles, nodes=shape.nodes, tip_position=shape.nodes[-1],
+                                   tip_rotation=shape.frames[-1], verdict=Verdict.HIDDEN, alternatives=(),
+                                   verdict_reason="1 camera(s) see the free end, 2 needed")
+    monkeypatch.setattr(estimator, "estimate", hidden_and_off)
+    robot = FakeRobot(np.array(load_cell_config().arm.park_joints))
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    from tapecell.cli.commands.run import grab_capture
+    from tapecell.estimator.capture import load_cameras
+
+    capture = grab_capture(load_cell_config(), load_cameras(cameras), images)
+    true_tip, off_tip = real_estimate(capture).tip_position, hidden_and_off(capture).tip_position
+    assert 0.005 < np.linalg.norm(off_tip - true_tip) < 0.010
+    _guide_needle_to(robot, true_tip, monkeypatch)
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--probe", "--yes"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    assert "refitted through the needle's touch on the tape's end" in out and "grasp executed" in out
+    names = [c[0] for c in robot.log]
+    assert names.index("endTeachMode") < names.index("moveJ")
+
+
 def test_without_probe_an_ambiguous_estimate_says_how_to_settle_it(real_like, monkeypatch, no_robot, capsys):
     images, cameras = real_like
     _ambiguous_with_alternative(monkeypatch, [0.0, 0.0, 0.02])

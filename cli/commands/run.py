@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, Speeds, TipFrame, estimated_surface,
                                        execute_plan, plan_grasp)
     from tapecell.cell.safety import SafetyLimits
-    from tapecell.cell.probe import end_measurable
+    from tapecell.cell.probe import end_measurable, hypotheses_to_probe
     from tapecell.cell.story import Story
 
     cfg = load_cell_config(args.config)
@@ -136,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
         if not est.actionable:
             why = (f"the estimate's verdict is {est.verdict.value}"
                    + (f" ({est.verdict_reason})" if est.verdict_reason else "") + ": a robot must not act on it")
-            if est.verdict.value not in PROBED_VERDICTS and not end_measurable(est):
+            if not hypotheses_to_probe(est) and not end_measurable(est):
                 raise TaskFailed(f"{why}; nothing moved")
             if not (args.execute and args.probe):
                 raise TaskFailed(f"{why}; nothing moved (--execute --probe settles it with the needle, guided by "
@@ -198,17 +198,15 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-PROBED_VERDICTS = ("hidden", "ambiguous")
-"""Verdicts the needle can settle: the shape may be right (or one of its alternatives),
-only not seen well enough to tell."""
-
-
 def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=print):
     """Freedrive probing of the tape's end on the real arm: the operator guides the needle
     onto the middle of the tape's end; returns the estimate with the hypothesis the needle
-    confirms as the answer (verdict ok), or raises :class:`TaskFailed` (nothing moved but
-    by hand). The arm is connected for the probe only, and freedrive ends on every path."""
-    from tapecell.cell.probe import PROBE_CONFIRM_M, adopt, confirmed
+    confirms as the answer (verdict ok), or, where it confirms none but exactly one
+    hypothesis' tip lies a few millimetres from the touch (REFIT_TOUCH_MAX_M), that shape
+    refitted through the touch when the refit still explains the views (:func:`_refit_through`);
+    else raises :class:`TaskFailed` (nothing moved but by hand). The arm is connected for the
+    probe only, and freedrive ends on every path."""
+    from tapecell.cell.probe import PROBE_CONFIRM_M, REFIT_TOUCH_MAX_M, adopt, confirmed
 
     tips = [est.tip_position] + [a.tip_position for a in est.alternatives]
     touched = _touch_end(cfg, yes, f"the estimate is {est.verdict.value} ({len(tips)} hypotheses of the tape's end)",
@@ -219,6 +217,14 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
                                for k, t in enumerate(tips)])
     k = confirmed(distances)
     listed = ", ".join(f"{1e3 * d:.1f}" for d in distances)
+    near = [j for j, d in enumerate(distances) if d <= REFIT_TOUCH_MAX_M]
+    if k is None and len(near) == 1 and distances[near[0]] > PROBE_CONFIRM_M:
+        # One hypothesis' end a few mm from the touch, none on it: refit it through the touch.
+        j = near[0]
+        settled = _refit_through(capture, est, j, touched, f"hypothesis {j}'s tip")
+        if settled is not None:
+            story.add("estimate", None, (capture, settled), "after probing")
+            return settled
     if k is None:
         raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm confirms none of the "
                          f"{len(tips)} hypotheses of the tape's end (their tips are {listed} mm away; one must be "
@@ -254,12 +260,14 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
     an end the model does not explain): the operator guides the needle onto the middle of
     the tape's end; where the touch lies on the estimated end's line (within 4 mm of it, from
     4 mm before the tip to 25 mm past it), the tip moves there along the tape and the
-    estimate becomes "ok" (:func:`tapecell.cell.probe.measured_end`); elsewhere
-    :class:`TaskFailed` (nothing moved but by hand). The simulated cell measures the same
+    estimate becomes "ok" (:func:`tapecell.cell.probe.measured_end`); off that line but
+    within REFIT_TOUCH_MAX_M of the tip, the shape refitted through the touch when the refit
+    still explains the views (:func:`_refit_through`); elsewhere :class:`TaskFailed` (nothing
+    moved but by hand). The simulated cell measures the same
     ends by stepping the needle past the tip."""
     import dataclasses
 
-    from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, measured_end
+    from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, REFIT_TOUCH_MAX_M, measured_end
     from tapecell.estimator import Verdict
 
     touched = _touch_end(cfg, yes, f"the estimate is {est.verdict.value} ({est.verdict_reason})",
@@ -268,6 +276,12 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
     tip, trunk = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)[:, 0]
     story.add("probes", None, [{"label": "end", "aimed": tip, "touched": touched, "t": None}])
     end = measured_end(tip, trunk, touched)
+    if end is None and float(np.linalg.norm(touched - tip)) <= REFIT_TOUCH_MAX_M:
+        # Off the end's line but a few mm from the tip: refit the shape through the touch.
+        settled = _refit_through(capture, est, 0, touched, "the tip")
+        if settled is not None:
+            story.add("estimate", None, (capture, settled), "after probing")
+            return settled
     if end is None:
         raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm is not on the estimated "
                          f"end's line (it must lie within {PROBE_CONFIRM_M * 1e3:.0f} mm of it, from "
@@ -278,6 +292,28 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
     settled = dataclasses.replace(est, tip_position=end, verdict=Verdict.OK, verdict_reason=reason)
     story.add("estimate", None, (capture, settled), "after probing")
     return settled
+
+
+def _refit_through(capture, est, k: int, touched: np.ndarray, what: str):
+    """Hypothesis ``k`` of ``est`` (0: itself, else its alternative k - 1) refitted through
+    the operator's touch ``touched`` (3,) [m] on the middle of the tape's end
+    (:func:`tapecell.estimator.touch.refit`), verdict "ok" when the refit still explains the
+    views (:func:`tapecell.cell.probe.refit_acceptable`); else None. The operator put the
+    needle on the end: no further touch is asked for."""
+    import dataclasses
+
+    from tapecell.cell.probe import ProbeParams, refit_acceptable
+    from tapecell.estimator import Verdict
+    from tapecell.estimator.touch import refit
+
+    shape = est if k == 0 else est.alternatives[k - 1]
+    refitted = refit(capture, shape.angles, touched, 2 * ProbeParams().inset)
+    if not refit_acceptable(refitted, shape.cost):
+        return None
+    d = float(np.linalg.norm(touched - shape.tip_position))
+    reason = (f"refitted through the needle's touch on the tape's end, {1e3 * d:.1f} mm from {what} "
+              f"(from the views alone: {refitted.verdict.value})")
+    return dataclasses.replace(refitted, verdict=Verdict.OK, verdict_reason=reason)
 
 
 def _arm_sample(t: float, q, event: str):
