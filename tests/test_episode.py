@@ -248,6 +248,52 @@ def test_needle_measures_the_end_of_a_fit_the_views_say_is_short():
         assert missed.verdict is Verdict.POOR_FIT and steps == []
 
 
+def test_needle_refits_an_end_it_touched_off_and_checks_the_corners():
+    """Seed 2: the estimate is "hidden" (one camera sees the end) and its end 5 mm off
+    along the unseen depth; the needle sent to its tip touches tape 4.8 mm away; the shape
+    is refitted through the touch, and the refit's tip, its two corners and a point past it
+    are probed before it is kept (within 1 mm of the end). Seed 4: a "tip" on the tape's side
+    edge with its trunk pointing off the tape (tape at it, none 6 mm past it: what was
+    confirmed before) is refused: one of its corners is in the air."""
+    import dataclasses
+
+    from tapecell.cell.config import load_cell_config
+    from tapecell.cell.probe import PROBE_CONFIRM_M, PROBE_CORNER_M, REFIT_TOUCH_MAX_M
+    from tapecell.estimator import Verdict
+    from tapecell.sim.arm import SimArm
+    from tapecell.sim.cell import SimCell
+    from tapecell.sim.episode import resolve_by_probing
+
+    cfg = load_cell_config()
+    with SimCell(cfg, seed=2, n_cameras=2, tool="gripper") as cell:
+        arm = SimArm(cell, tool="gripper")
+        capture = cell.capture()
+        est = estimate(capture)
+        true_tip = cell.tape_tip_frame()[:3, 3]
+        assert est.verdict is Verdict.HIDDEN and np.linalg.norm(est.tip_position - true_tip) > 0.004
+        notes: dict = {}
+        kept, touched = resolve_by_probing(cell, arm, est, cfg.tape.width, None, capture, notes)
+    assert 1e3 * PROBE_CONFIRM_M < touched[0] <= 1e3 * REFIT_TOUCH_MAX_M
+    assert kept.verdict is Verdict.OK and kept.verdict_reason.startswith("refitted through the needle's touch")
+    assert np.linalg.norm(kept.tip_position - true_tip) < 0.001
+    assert len(notes["probed_corners_mm"]) == 2 and max(notes["probed_corners_mm"]) < 1e3 * PROBE_CORNER_M
+
+    with SimCell(cfg, seed=4, n_cameras=2, tool="gripper") as cell:
+        arm = SimArm(cell, tool="gripper")
+        est = estimate(cell.capture())
+        truth = cell.tape_tip_frame()
+        R = truth[:3, :3]
+        side = dataclasses.replace(est, tip_position=truth[:3, 3] - 0.005 * R[:, 0] + (0.5 * cfg.tape.width - 0.0005) * R[:, 1],
+                                   tip_rotation=np.column_stack([R[:, 1], -R[:, 0], R[:, 2]]),
+                                   verdict=Verdict.HIDDEN, alternatives=())
+        notes, probes = {}, []
+        refused, touched = resolve_by_probing(cell, arm, side, cfg.tape.width, probes, None, notes)
+    assert touched[0] is not None and touched[0] < 1e3 * PROBE_CONFIRM_M          # tape at the "tip" ...
+    assert all(p["touched"] is None for p in probes if p["label"].startswith("beyond"))   # ... none past it
+    assert refused.verdict is Verdict.HIDDEN
+    assert any(d is None or d > 1e3 * PROBE_CORNER_M for d in notes["probed_corners_mm"])
+
+
 def test_an_end_the_model_does_not_explain_is_measured_by_the_needle(capsys):
     """Seed 520012: the tape's end hooks over within a few millimetres, which 30 mm plates
     cannot follow; the estimate is poor_fit ("does not explain the free end"). The needle
