@@ -459,7 +459,7 @@ def warm() -> float:
         return 0.0
     import time
 
-    from ._kernels_beam import beam_candidates, diverse, edge_cost, label_areas, map_labels, outline_cost
+    from ._kernels_beam import beam_candidates, best_totals, diverse, label_areas, map_labels, outline_cost
     from ._kernels_boxes import box_arrays, box_penetration, segments_hit_boxes
 
     start = time.perf_counter()
@@ -475,9 +475,12 @@ def warm() -> float:
         pts, J = chain_points(angles, *args, jac)
         view_residuals(pts, J, jac, cam, field, 0, 0, True, np.zeros((2, 2)), 1, np.ones(1, np.bool_),
                        np.ones(1), segments, 3.0, 1.5, np.zeros((1, 1), np.bool_))
-    edge_cost(pts, 1, cam, field[:, :, 0].copy(), field[:, :, 3].copy(), 0, 0, True, 3.0, 1.5,
-              np.zeros(pts.shape[:2], np.bool_), 0.0)
     outline_cost(pts, segments, cam, np.zeros((2, 2)), 3.0)
+    for hid in (np.zeros((0, 0, 0), np.bool_), np.zeros((1,) + pts.shape[:2], np.bool_)):
+        best_totals(pts, 1, cam[None], field[:, :, 0].ravel(), field[:, :, 3].ravel(), np.zeros((1, 2), np.int64),
+                    np.full((1, 2), 4, np.int64), np.zeros((1, 2), np.int64), np.ones(1, np.bool_), np.ones(1),
+                    hid, 2.0, 3.0, 1.5, np.zeros(1), np.zeros(1), np.zeros(1), 1, np.arange(pts.shape[0]),
+                    np.arange(pts.shape[1]))
     lookup(field, 0, 0, True, np.zeros(2), np.zeros(2))
     t = np.array([0.5])
     F, E, _ = beam_candidates(np.eye(3)[None], np.zeros((1, 3)), np.eye(3)[None], 0.01, 0.005, t, t, t)
