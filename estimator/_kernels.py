@@ -268,13 +268,14 @@ def chain_points(angles, base_position, base_rotation, segment_lengths, width, p
 
 @njit(cache=True, fastmath=False)
 def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns, edge, weight, segments,
-                   delta_out, delta_in, hidden):
+                   delta_out, delta_in, hidden, res, jac, row0):
     """One view's part of residuals.residuals (no view shifts): coverage residuals of the
     observed outline (P) then the sample points' (ns) residuals.
 
     pts: (B, ns + 3m, 3) sample points then corners; J: their Jacobian (B, ., 3, N);
     hidden: (B, ns) sample points a scene box hides from this camera (cost nothing).
-    Returns (robust cost (B,), weighted residuals (B, P + ns), Jacobian (B, P + ns, N)).
+    Writes the weighted residuals to ``res[:, row0:row0 + P + ns]`` and, with ``jacobian``,
+    their Jacobian to ``jac[:, row0:row0 + P + ns]`` (B, ., N); returns the robust cost (B,).
     """
     B = pts.shape[0]
     nc = pts.shape[1] - ns
@@ -282,8 +283,6 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
     P = outline.shape[0]
     K = segments.shape[0]
     cost = np.zeros(B)
-    res = np.empty((B, P + ns))
-    jac = np.zeros((B, P + ns if jacobian else 0, N))
     cu = np.empty(nc)
     cv = np.empty(nc)
     cduv = np.empty((nc, 2, N))
@@ -337,7 +336,7 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
             rho, w = _huber(d, delta_out)
             rho_sum += rho
             sw = math.sqrt(w)
-            res[b, q] = sw * d
+            res[b, row0 + q] = sw * d
             if jacobian:
                 nx = rxb / d
                 ny = ryb / d
@@ -345,7 +344,7 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
                 for col in range(N):
                     g = (nx * cduv[s0, 0, col] + ny * cduv[s0, 1, col]) * (tb - 1.0)
                     g -= tb * (nx * cduv[s1, 0, col] + ny * cduv[s1, 1, col])
-                    jac[b, q, col] = sw * g
+                    jac[b, row0 + q, col] = sw * g
         cost[b] += rho_sum
         # sample points: signed distance to the observed boundary
         rho_sum = 0.0
@@ -360,7 +359,7 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
                 w = 0.0
             rho_sum += rho * weight[p] ** 2
             sw = math.sqrt(w) * weight[p]
-            res[b, P + p] = sw * r
+            res[b, row0 + P + p] = sw * r
             if jacobian:
                 if centre and sdf <= 0:
                     sw = 0.0
@@ -368,9 +367,9 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
                 for col in range(N):
                     ju = u0 * J[b, p, 0, col] + u1 * J[b, p, 1, col] + u2 * J[b, p, 2, col]
                     jv = v0 * J[b, p, 0, col] + v1 * J[b, p, 1, col] + v2 * J[b, p, 2, col]
-                    jac[b, P + p, col] = sw * (gx * ju + gy * jv)
+                    jac[b, row0 + P + p, col] = sw * (gx * ju + gy * jv)
         cost[b] += rho_sum
-    return cost, res, jac
+    return cost
 
 
 # --------------------------------------------------------------------------- wrappers
@@ -426,24 +425,35 @@ def points(chain, angles: np.ndarray, jacobian: bool):
     return pts, (J if jacobian else None)
 
 
-def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: float, delta_in: float):
-    """Compiled per-view part of ``residuals.residuals`` without view shifts: (residual blocks
-    [(B, P_k + s)] per view, Jacobian blocks [(B, P_k + s, 3n)] or [], robust cost (B,),
-    the chains' points (B, s + 3m, 3) and their Jacobian (B, s + 3m, 3, 3n) or None)."""
+def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: float, delta_in: float, extra: int):
+    """Compiled per-view part of ``residuals.residuals`` without view shifts, its blocks
+    already in place: (residuals (B, R), Jacobian (B, R, 3n) or None, robust cost (B,), the
+    chains' points (B, s + 3m, 3) and their Jacobian (B, s + 3m, 3, 3n) or None), where rows
+    0..R - ``extra`` hold each view's (coverage P_k, then the s sample points; a view's
+    weight w scales its rows by sqrt(w) and its cost by w) and the last ``extra`` rows are
+    left for the caller to fill."""
     pair, pair_w, edge, weight, segments, pos, rot, lengths, width = _chain_arrays(chain)
     pts, J = chain_points(np.ascontiguousarray(angles, float), pos, rot, lengths, width, pair, pair_w, jacobian)
-    cost = np.zeros(len(pts))
-    rs, js = [], []
+    B = len(pts)
     ns = chain.samples
+    R = sum(len(f.outline) + ns for f in fields) + extra
+    res = np.empty((B, R))
+    jac = np.empty((B, R, 3 * chain.n) if jacobian else (0, 0, 0))
+    cost = np.zeros(B)
+    row = 0
     for f in fields:
-        c, r, j = view_residuals(pts, J, jacobian, camera_params(f.camera), f.field, f.x0, f.y0, f.has_ignore,
-                                 f.outline, ns, edge, weight, segments, delta_out, delta_in,
-                                 hidden_points(f, pts[:, :ns]))
-        cost += c
-        rs.append(r)
-        if jacobian:
-            js.append(j)
-    return rs, js, cost, pts, (J if jacobian else None)
+        c = view_residuals(pts, J, jacobian, camera_params(f.camera), f.field, f.x0, f.y0, f.has_ignore,
+                           f.outline, ns, edge, weight, segments, delta_out, delta_in, hidden_points(f, pts[:, :ns]),
+                           res, jac, row)
+        rows = slice(row, row + len(f.outline) + ns)
+        if f.weight != 1.0:
+            w = np.sqrt(f.weight)
+            res[:, rows] *= w
+            if jacobian:
+                jac[:, rows] *= w
+        cost += f.weight * c
+        row = rows.stop
+    return res, (jac if jacobian else None), cost, pts, (J if jacobian else None)
 
 
 _warm = False
@@ -459,7 +469,7 @@ def warm() -> float:
         return 0.0
     import time
 
-    from ._kernels_beam import beam_candidates, diverse, edge_cost, label_areas, map_labels, outline_cost
+    from ._kernels_beam import beam_candidates, best_totals, diverse, label_areas, map_labels, outline_cost
     from ._kernels_boxes import box_arrays, box_penetration, segments_hit_boxes
 
     start = time.perf_counter()
@@ -474,10 +484,14 @@ def warm() -> float:
     for jac in (False, True):
         pts, J = chain_points(angles, *args, jac)
         view_residuals(pts, J, jac, cam, field, 0, 0, True, np.zeros((2, 2)), 1, np.ones(1, np.bool_),
-                       np.ones(1), segments, 3.0, 1.5, np.zeros((1, 1), np.bool_))
-    edge_cost(pts, 1, cam, field[:, :, 0].copy(), field[:, :, 3].copy(), 0, 0, True, 3.0, 1.5,
-              np.zeros(pts.shape[:2], np.bool_), 0.0)
+                       np.ones(1), segments, 3.0, 1.5, np.zeros((1, 1), np.bool_), np.empty((1, 3)),
+                       np.empty((1, 3, 3 * n) if jac else (0, 0, 0)), 0)
     outline_cost(pts, segments, cam, np.zeros((2, 2)), 3.0)
+    for hid in (np.zeros((0, 0, 0), np.bool_), np.zeros((1,) + pts.shape[:2], np.bool_)):
+        best_totals(pts, 1, cam[None], field[:, :, 0].ravel(), field[:, :, 3].ravel(), np.zeros((1, 2), np.int64),
+                    np.full((1, 2), 4, np.int64), np.zeros((1, 2), np.int64), np.ones(1, np.bool_), np.ones(1),
+                    hid, 2.0, 3.0, 1.5, np.zeros(1), np.zeros(1), np.zeros(1), 1, np.arange(pts.shape[0]),
+                    np.arange(pts.shape[1]))
     lookup(field, 0, 0, True, np.zeros(2), np.zeros(2))
     t = np.array([0.5])
     F, E, _ = beam_candidates(np.eye(3)[None], np.zeros((1, 3)), np.eye(3)[None], 0.01, 0.005, t, t, t)

@@ -1,5 +1,5 @@
-"""Compiled scores of the global stage (numba): a beam candidate's sample points against a
-view's signed distance field, complete chains' coverage of the observed outline, the beam's
+"""Compiled scores of the global stage (numba): beam candidates' sample points against the
+views' signed distance fields (exactly for the candidates that may be kept), complete chains'' coverage of the observed outline, the beam's
 candidate generation and diversity, and the mask clean-up's label maps. Like
 :mod:`estimator._kernels`, each mirrors the NumPy reference (:mod:`estimator.reference`) in
 the same order of arithmetic."""
@@ -15,50 +15,106 @@ from ._kernels_boxes import HIDDEN_BEAM_COST, hidden_points
 
 
 @njit(cache=True, fastmath=False, inline="always")
-def _lerp1(img, sx, sy, sx1, sy1, a, b):
-    """_lerp2 on a single-channel image."""
-    p00 = img[sy, sx]
-    p10 = img[sy1, sx]
-    top = _fma32(a, img[sy, sx1] - p00, p00)
-    bottom = _fma32(a, img[sy1, sx1] - p10, p10)
+def _lerp_flat(img, off, w, sx, sy, sx1, sy1, a, b):
+    """:func:`_kernels._lerp2` on a single-channel plane stored flat (row length ``w``) from
+    ``img[off]``: the same numbers."""
+    p00 = img[off + sy * w + sx]
+    p10 = img[off + sy1 * w + sx]
+    top = _fma32(a, img[off + sy * w + sx1] - p00, p00)
+    bottom = _fma32(a, img[off + sy1 * w + sx1] - p10, p10)
     return _fma32(b, bottom - top, top)
 
 
-@njit(cache=True, fastmath=False, inline="always")
-def _sample_sdf(sdf_img, flag_img, x0, y0, has_ignore, u, v):
-    """_sample without the gradient, from the field's sdf and ignore-flag planes: (sdf,
-    ignored), the same numbers."""
-    h, w = sdf_img.shape[0], sdf_img.shape[1]
-    sx, sy, sx1, sy1, a, b, ox, oy = _cell(h, w, x0, y0, u, v)
-    extra = abs(ox) + abs(oy)
-    sdf = np.float64(_lerp1(sdf_img, sx, sy, sx1, sy1, a, b)) + extra
-    ignored = has_ignore and not extra > 0 and _lerp1(flag_img, sx, sy, sx1, sy1, a, b) > 0.5
-    return sdf, ignored
-
-
 @njit(cache=True, fastmath=False)
-def edge_cost(pts, n_edge, cam, sdf_img, flag_img, x0, y0, has_ignore, delta_out, delta_in, hidden, hidden_cost):
-    """Beam score of one view: (C, s, 3) candidates' sample points, the first ``n_edge``
-    on plate edges (signed distance, robust), the rest on the centre line (only outside
-    counts) -> (C,) summed robust losses (ignored pixels cost nothing). sdf_img, flag_img:
-    the field's channels 0 and 3 as (h, w) float32 planes; hidden: (C, s) points a scene
-    box hides from this camera (cost ``hidden_cost`` each: a partial chain is not better
-    for hiding behind the part)."""
+def best_totals(pts, n_edge, cams, sdf, flag, offsets, sizes, origins, has_ignore, weights, hidden, hidden_cost,
+                delta_out, delta_in, base, prior, extra, keep, order, perm):
+    """The beam's totals (B G,) of its candidates (B G, s, 3) (candidate b G + g: parent b,
+    grid angle g) over all views, as the NumPy reference (``reference.beam_edge_cost`` and
+    ``search.beam_search``) sums them to float rounding, a view's losses in point order: per
+    view the summed robust losses of the
+    points, the first ``n_edge`` on plate edges (signed distance), the rest on the centre line
+    (only outside counts), ignored pixels costing nothing, times the view's weight, added to
+    the plate's score, then ``extra``
+    (the box penetration term), then (``base[b]`` + that) + ``prior[g]``; but +inf for a
+    candidate that cannot rank among the ``keep`` best. A candidate's points are scored in
+    the order ``perm`` (the most telling first), in every view, and it is cut short once
+    the sum of its non-negative losses so far is above the ``keep``-th best total found so
+    far (by more than the summation's rounding: that sum is a lower bound of its total);
+    the totals of the others are summed in their own order, so the ``keep`` best are exact.
+
+    Views k: camera ``cams[k]``, signed distance plane ``sdf[offsets[k, 0]:]`` and ignore
+    flag plane ``flag[offsets[k, 1]:]`` (used only where ``has_ignore[k]``), each ``sizes[k]``
+    (h, w) with its top-left pixel at ``origins[k]``; ``hidden`` (V, B G, s): points a scene
+    box hides (cost ``hidden_cost`` each), or (0, 0, 0) without boxes. ``order``: the
+    candidates in the order they are tried (the sooner the best are, the more are cut short)."""
     C, s = pts.shape[0], pts.shape[1]
-    out = np.empty(C)
-    for c in range(C):
-        total = 0.0
-        for p in range(s):
-            u, v, x, y, z = _project(cam, pts[c, p, 0], pts[c, p, 1], pts[c, p, 2])
-            sdf, ignored = _sample_sdf(sdf_img, flag_img, x0, y0, has_ignore, u, v)
+    G = prior.size
+    V = weights.size
+    boxes = hidden.shape[0] > 0
+    out = np.full(C, np.inf)
+    heap = np.full(max(keep, 1), np.inf)     # max-heap of the best ``keep`` totals so far
+    loss = np.zeros((V, s))
+    partial = np.zeros(V)
+    for c in order:
+        b = c // G
+        g = c - b * G
+        limit = heap[0] * (1.0 + 1e-12)
+        lead = base[b]
+        tail = prior[g]
+        partial[:] = 0.0
+        pruned = False
+        for p in perm:
             is_edge = p < n_edge
-            r = sdf if is_edge else max(sdf, 0.0)
-            rho, w = _robust(r, is_edge and sdf < 0, delta_out, delta_in)
-            if hidden[c, p]:
-                total += hidden_cost
-            elif not ignored:
-                total += rho
-        out[c] = total
+            bound = lead + tail
+            for k in range(V):
+                if boxes and hidden[k, c, p]:
+                    val = hidden_cost
+                else:
+                    cam = cams[k]
+                    h, w = sizes[k, 0], sizes[k, 1]
+                    u, v, x, y, z = _project(cam, pts[c, p, 0], pts[c, p, 1], pts[c, p, 2])
+                    sx, sy, sx1, sy1, a, bb, ox, oy = _cell(h, w, origins[k, 0], origins[k, 1], u, v)
+                    ext = abs(ox) + abs(oy)
+                    d = np.float64(_lerp_flat(sdf, offsets[k, 0], w, sx, sy, sx1, sy1, a, bb)) + ext
+                    if (has_ignore[k] and not ext > 0
+                            and _lerp_flat(flag, offsets[k, 1], w, sx, sy, sx1, sy1, a, bb) > 0.5):
+                        val = 0.0
+                    else:
+                        r = d if is_edge else max(d, 0.0)
+                        val, _ = _robust(r, is_edge and d < 0, delta_out, delta_in)
+                loss[k, p] = val
+                partial[k] += val
+                bound += weights[k] * partial[k]
+            if bound > limit:
+                pruned = True
+                break
+        if pruned:
+            continue
+        plate = 0.0
+        for k in range(V):
+            total = 0.0
+            for p in range(s):
+                total += loss[k, p]
+            plate += weights[k] * total
+        plate += extra[c]
+        t = (lead + plate) + tail
+        out[c] = t
+        if t < heap[0]:
+            # Replace the largest kept total and sift it down.
+            i = 0
+            n = heap.size
+            while True:
+                left = 2 * i + 1
+                if left >= n:
+                    break
+                j = left
+                if left + 1 < n and heap[left + 1] > heap[left]:
+                    j = left + 1
+                if heap[j] <= t:
+                    break
+                heap[i] = heap[j]
+                i = j
+            heap[i] = t
     return out
 
 
@@ -211,14 +267,49 @@ def map_labels(labels, lut, base):
     return out
 
 
-def beam_edge_cost(field, pts: np.ndarray, edge_count: int, delta_out: float, delta_in: float) -> np.ndarray:
-    """Compiled beam score of one view (see :func:`edge_cost`): (..., s, 3) candidate
-    sample points -> (...) summed robust losses."""
-    lead = pts.shape[:-2]
+def pack_views(fields) -> tuple:
+    """The views' beam-scoring inputs in :func:`best_totals`' form: (cams, sdf, flag,
+    offsets, sizes, origins, has_ignore, weights); made once per beam search."""
+    sdf, flag, offsets, at_sdf, at_flag = [], [], [], 0, 0
+    for f in fields:
+        plane, ignore = f.planes
+        offsets.append((at_sdf, at_flag))
+        sdf.append(plane.ravel())
+        at_sdf += plane.size
+        if f.has_ignore:
+            flag.append(ignore.ravel())
+            at_flag += ignore.size
+    return (np.array([camera_params(f.camera) for f in fields]),
+            np.concatenate(sdf).astype(np.float32, copy=False),
+            np.concatenate(flag).astype(np.float32, copy=False) if flag else np.zeros(1, np.float32),
+            np.array(offsets, np.int64), np.array([f.planes[0].shape for f in fields], np.int64),
+            np.array([(f.x0, f.y0) for f in fields], np.int64), np.array([f.has_ignore for f in fields]),
+            np.array([f.weight for f in fields], float))
+
+
+def beam_totals(fields, packed: tuple, pts: np.ndarray, edge_count: int, perm: np.ndarray, base: np.ndarray,
+                prior: np.ndarray, extra: np.ndarray, keep: int, delta_out: float, delta_in: float) -> np.ndarray:
+    """The beam's totals of candidates ``pts`` (B, G, s, 3) over ``fields`` (``packed`` by
+    :func:`pack_views`), exact for the ``keep`` best and +inf for candidates that cannot be
+    among them (see :func:`best_totals`, which scores the points in the order ``perm``);
+    (B G,). Where two of the ``keep`` best are equal,
+    all totals are computed (which of two equal totals ranks first is then the sort's
+    choice on the whole array, as without the bound)."""
     flat = np.ascontiguousarray(pts, float).reshape(-1, pts.shape[-2], 3)
-    out = edge_cost(flat, edge_count, camera_params(field.camera), *field.planes, field.x0, field.y0,
-                    field.has_ignore, delta_out, delta_in, hidden_points(field, flat), HIDDEN_BEAM_COST)
-    return out.reshape(lead)
+    hidden = (np.stack([hidden_points(f, flat) for f in fields]) if fields and fields[0].boxes
+              else np.zeros((0, 0, 0), np.bool_))
+    cams, sdf, flag, offsets, sizes, origins, has_ignore, weights = packed
+    args = (flat, edge_count, cams, sdf, flag, offsets, sizes, origins, has_ignore, weights, hidden,
+            HIDDEN_BEAM_COST, delta_out, delta_in, np.ascontiguousarray(base, float), prior, extra)
+    # Tried in the order of what is known before scoring (the parent's score, the angles'
+    # prior): the best come early and set a tight bound.
+    order = np.argsort((base[:, None] + prior[None, :]).ravel(), kind="stable")
+    total = best_totals(*args, keep, order, perm)
+    if keep < len(total):
+        best = np.sort(total)[:keep]
+        if np.any(best[1:] == best[:-1]) or np.count_nonzero(total == best[-1]) > 1:
+            total = best_totals(*args, len(total) + 1, order, perm)
+    return total
 
 
 def beam_outline_cost(field, corners: np.ndarray, segments: np.ndarray, obs: np.ndarray,

@@ -57,28 +57,57 @@ from .views import prepare
 Callback = Callable[[int, float, np.ndarray], None]
 
 
+class FirstStage:
+    """What every look at one capture computes alike, done once and shared by the first look
+    and the second, thorough one (:func:`estimate`): the views' preparation, the global
+    search on the default grid, its refinement and the winner's mirrors (none of them
+    depends on ``thorough``), and the strip stage of each plate fit (a function of its
+    angles alone)."""
+
+    def __init__(self, capture: Capture, chain: Chain, cfg: FitConfig):
+        self.fields = [prepare(v, capture.scene, cfg) for v in capture.views]
+        evaluator = CostEvaluator([f.target for f in self.fields], capture.scene)
+
+        def silhouette_costs(angles: np.ndarray) -> np.ndarray:
+            return evaluator.costs(chain.quads(angles))
+
+        starts = np.array(beam_search(capture.tape, self.fields, cfg=cfg))
+        pool: list = []
+        angles, trace, cost = refine(chain, self.fields, starts, silhouette_costs, pool, cfg)
+        # The classic silhouette ambiguity, a bend towards or away from the cameras: the
+        # winner's mirror images are refined too, as hypotheses (and the winner if better).
+        a2, t2, c2 = refine(chain, self.fields, mirrors(angles), silhouette_costs, pool, cfg)
+        if c2 < cost:
+            angles, trace, cost = a2, t2, c2
+        self.angles, self.trace, self.cost, self.pool = angles, trace, cost, pool
+        self.evaluations = evaluator.evaluations
+        self._strips: dict = {}
+
+    def strip(self, chain: Chain, angles: np.ndarray, cfg: FitConfig):
+        """:func:`strip_stage` from the plate fit ``angles``, once per distinct fit."""
+        key = angles.tobytes()
+        if key not in self._strips:
+            self._strips[key] = strip_stage(chain, self.fields, angles, cfg)
+        return self._strips[key]
+
+
 def fit_default(capture: Capture, callback: Callback | None = None, thorough: bool = False,
-                cfg: FitConfig = DEFAULT):
+                cfg: FitConfig = DEFAULT, first: FirstStage | None = None):
     """Fit by the project's method; returns (angles, trace, evaluations, fallback) where
     trace holds the winning candidate's angles after each local-stage iteration, and
     fallback (with the strip stage, else None) is (the plate fit's eq.-11 cost, [functions
     giving the chains to fall back to, in order, the plate fit last]) for estimate()'s
-    guard."""
+    guard. ``first``: this capture's :class:`FirstStage` when another look made it."""
     chain = Chain(capture.tape, cfg=cfg)
-    fields = [prepare(v, capture.scene, cfg) for v in capture.views]
+    first = FirstStage(capture, chain, cfg) if first is None else first
+    fields = first.fields
     evaluator = CostEvaluator([f.target for f in fields], capture.scene)
+    evaluator.evaluations = first.evaluations
 
     def silhouette_costs(angles: np.ndarray) -> np.ndarray:
         return evaluator.costs(chain.quads(angles))
 
-    starts = np.array(beam_search(capture.tape, fields, cfg=cfg))
-    pool: list = []
-    angles, trace, cost = refine(chain, fields, starts, silhouette_costs, pool, cfg)
-    # The classic silhouette ambiguity, a bend towards or away from the cameras: the
-    # winner's mirror images are refined too, as hypotheses (and the winner if better).
-    a2, t2, c2 = refine(chain, fields, mirrors(angles), silhouette_costs, pool, cfg)
-    if c2 < cost:
-        angles, trace, cost = a2, t2, c2
+    angles, trace, cost, pool = first.angles, first.trace, first.cost, list(first.pool)
     worst_px = max(c * f.target.area / f.outline_px
                    for c, f in zip(evaluator.view_costs(chain.quads(angles)[0]), fields))
     # (misfit_px reads the disagreement images view_costs just drew for these quads.)
@@ -97,7 +126,7 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
     fallback = None
     tip = None
     if cfg.strip:
-        output = strip_stage(chain, fields, angles, cfg)
+        output = first.strip(chain, angles, cfg)
         tip = output.tip
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
@@ -249,22 +278,32 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     the answer (below); False answers from the first look.
     Returns an :class:`Estimate`; ``time_s`` is the fitting time alone.
     """
-    from .paper import fit_paper
-
     if method not in ("default", "paper"):
         raise EstimateError(f"unknown estimation method {method!r} (use 'default' or 'paper')")
     if not capture.views:
         raise EstimateError(f"{capture.name}: no camera views to fit")
     if method == "default":
         warm()  # once per process: compiling/loading the kernels is not fitting
+    return _look(capture, method, callback, thorough, config, second_look)
+
+
+def _look(capture: Capture, method: str, callback: Callback | None, thorough: bool, config: FitConfig,
+          second_look: bool, first: FirstStage | None = None) -> Estimate:
+    """:func:`estimate` once its arguments are checked; ``first``: the capture's
+    :class:`FirstStage` when the first look made it (its masks were judged sound then)."""
+    from .paper import fit_paper
+
     start = time.perf_counter()
-    faults = [(k, mask_fault(v)) for k, v in enumerate(capture.views)]
-    faults = [(k, f) for k, f in faults if f]
-    if faults:
-        return _garbage(capture, faults, method, start, config)
+    if first is None:
+        faults = [(k, mask_fault(v)) for k, v in enumerate(capture.views)]
+        faults = [(k, f) for k, f in faults if f]
+        if faults:
+            return _garbage(capture, faults, method, start, config)
     fallback, found, tip = None, [], None
     if method == "default":
-        angles, trace, evaluations, fallback, found, tip = fit_default(capture, thorough=thorough, cfg=config)
+        first = FirstStage(capture, Chain(capture.tape, cfg=config), config) if first is None else first
+        angles, trace, evaluations, fallback, found, tip = fit_default(capture, thorough=thorough, cfg=config,
+                                                                       first=first)
     else:
         angles, history, evaluations = fit_paper(capture, callback)
     shape, view_costs, evaluator = _costed(capture, angles)
@@ -300,10 +339,10 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     # before answering, for an unsure estimate and for an "ok" fold (its alternatives, the
     # shapes folded the other way, are weighed afresh). For a fold its answer stands; for an
     # unsure one when it is "ok" (judged afresh) or explains the views better. The time of
-    # both looks counts.
+    # both looks counts. What the looks compute alike (:class:`FirstStage`) is done once.
     folded = verdict is Verdict.OK and float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN)
     if method == "default" and second_look and not thorough and (folded or unsure):
-        second = estimate(capture, method, thorough=True, config=config)
+        second = _look(capture, method, None, True, config, True, first)
         return dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
     return est

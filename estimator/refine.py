@@ -9,7 +9,7 @@ import numpy as np
 
 from .chain import Chain
 from .config import DEFAULT, FitConfig
-from .solver import levenberg_marquardt
+from .solver import levenberg_marquardt, trace
 from .verdict import DISTINCT_TIP_M
 from .views import Field
 
@@ -22,9 +22,9 @@ def refine(chain: Chain, fields: list[Field], starts: np.ndarray, silhouette_cos
     chain as (eq.-11 cost, angles) to ``pool`` (the hypotheses the verdict weighs), with
     the best cfg.alternatives screened candidates whose tips lie more than DISTINCT_TIP_M from
     the refined ones' refined too (distinct shapes the robust cost ranked lower)."""
-    traces: list[list[np.ndarray]] = [[] for _ in starts]
+    screen: list = []
     params = starts.reshape(len(starts), -1)
-    params, cost, (r, J, _) = levenberg_marquardt(chain, fields, params, cfg.lm_screen, traces, cfg=cfg)
+    params, cost, (r, J, _) = levenberg_marquardt(chain, fields, params, cfg.lm_screen, screen, cfg=cfg)
     # Screened by the robust cost (ranking all by eq. 11 was measured no better on the
     # samples and worse on sim captures); the silhouette cost (eq. 11) picks the winner.
     # The screen's residuals carry over: no re-evaluation at the kept candidates.
@@ -49,15 +49,16 @@ def refine(chain: Chain, fields: list[Field], starts: np.ndarray, silhouette_cos
         rest = order[cfg.refine:][cost[order[cfg.refine:]] < cfg.eq11_range * cost[order[0]]]
         eq11 = silhouette_costs(params[rest, :3 * chain.n].reshape(-1, chain.n, 3))
         keep = np.concatenate([keep, rest[np.argsort(eq11)[:cfg.refine_eq11]]]) if len(rest) else keep
-    sub_traces = [traces[k] for k in keep]
-    params, _, _ = levenberg_marquardt(chain, fields, params[keep], cfg.lm_iterations, sub_traces,
+    keep = keep[np.sort(np.unique(keep, return_index=True)[1])]   # one chosen twice is refined once
+    converge: list = []
+    params, _, _ = levenberg_marquardt(chain, fields, params[keep], cfg.lm_iterations, converge,
                                        (r[keep], J[keep], cost[keep]), cfg)
     refined = params[:, :3 * chain.n].reshape(-1, chain.n, 3)
     costs = silhouette_costs(refined)
     best = int(np.argmin(costs))
     if pool is not None:
         pool += [(float(c), a) for c, a in zip(costs, refined)]
-    return refined[best], sub_traces[best], float(costs[best])
+    return refined[best], trace(screen, keep[best], chain.n) + trace(converge, best, chain.n), float(costs[best])
 
 
 def mirrors(angles: np.ndarray) -> np.ndarray:

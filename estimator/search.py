@@ -44,6 +44,8 @@ def beam_search(spec: TapeSpec, fields: list[Field], grid: np.ndarray | None = N
     lefts = (nodes + h * frames[:, :, 1])[:, None, :]
     rights = (nodes - h * frames[:, :, 1])[:, None, :]
     no_tip = np.zeros(0)
+    packed = _kernels_beam.pack_views(fields) if cfg.compiled else None
+    prior = cfg.angle_prior * np.sum(grid ** 2, axis=1)
     for i in range(n):
         last = i == n - 1
         edge_count = 2 * len(edge_t) + (len(tip_t) if last else 0)
@@ -54,21 +56,29 @@ def beam_search(spec: TapeSpec, fields: list[Field], grid: np.ndarray | None = N
             pts = pts.reshape(len(nodes), len(grid), -1, 3)
         else:
             F, ends, pts = reference.beam_candidates(frames, nodes, grid_r, spec.segment_lengths[i], h, last, cfg)
-        is_edge = np.arange(pts.shape[2]) < edge_count
-        plate = np.zeros(pts.shape[:2])
-        for f in fields:
-            if cfg.compiled:
-                plate += f.weight * _kernels_beam.beam_edge_cost(f, pts, edge_count, cfg.delta_out_px, cfg.delta_in_px)
-            else:
-                plate += f.weight * reference.beam_edge_cost(f, pts, is_edge, cfg)
         boxes = fields[0].boxes if fields else ()
+        pen = np.zeros(len(nodes) * len(grid))
         if boxes:
             depth, _ = _kernels_boxes.box_penetration(np.ascontiguousarray(ends.reshape(-1, 3), float),
-                                                *fields[0].box_arrays)   # the plates' end corners
-            plate += 1e3 * cfg.beam_penetration * depth.reshape(plate.shape + (-1,)).sum(axis=-1)
-        prior = cfg.angle_prior * np.sum(grid ** 2, axis=1)
-        total = (scores[:, None] + plate + prior[None, :]).reshape(-1)
+                                                      *fields[0].box_arrays)   # the plates' end corners
+            pen = 1e3 * cfg.beam_penetration * depth.reshape(len(pen), -1).sum(axis=-1)
         count = beam * (4 if last else 1)
+        if cfg.compiled:
+            # Only the diverse pool's candidates need their totals; the others are cut short,
+            # their points scored from the new plate's far end back (where the candidates of
+            # one parent differ most).
+            along = np.concatenate([edge_t, edge_t, np.ones(len(tip_t)) if last else no_tip, centre_t])
+            total = _kernels_beam.beam_totals(fields, packed, pts, edge_count, np.argsort(-along, kind="stable"),
+                                              scores, prior, pen, cfg.diverse_pool * count, cfg.delta_out_px,
+                                              cfg.delta_in_px)
+        else:
+            is_edge = np.arange(pts.shape[2]) < edge_count
+            plate = np.zeros(pts.shape[:2])
+            for f in fields:
+                plate += f.weight * reference.beam_edge_cost(f, pts, is_edge, cfg)
+            if boxes:
+                plate += pen.reshape(plate.shape)
+            total = (scores[:, None] + plate + prior[None, :]).reshape(-1)
         ends = ends.reshape(-1, 3, 3)
         keep = diverse(np.argsort(total)[:cfg.diverse_pool * count], ends, count, cfg)
         b, gi = np.divmod(keep, len(grid))

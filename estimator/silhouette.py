@@ -108,11 +108,20 @@ def render(quads_px: np.ndarray, shape: tuple[int, int], x0: int = 0, y0: int = 
     pts = quads_px - np.array([x0, y0], float)
     if not np.all(np.isfinite(pts)):
         return img
-    # Keep fixed-point vertices inside int32 even for points far outside the image.
-    fixed = np.rint(np.clip(pts, -1e5, 1e5) * _ONE).astype(np.int32)
+    _fill(img, _fixed_point(pts))
+    return img
+
+
+def _fixed_point(pts: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (..., 2) as fillPoly's fixed-point int32 vertices, kept inside
+    int32 even for points far outside the image."""
+    return np.rint(np.clip(pts, -1e5, 1e5) * _ONE).astype(np.int32)
+
+
+def _fill(img: np.ndarray, fixed: np.ndarray) -> None:
+    """Fill each of the fixed-point quads (m, 4, 2) into ``img`` with 1, one by one."""
     for q in fixed:
         cv2.fillPoly(img, [q], 1, cv2.LINE_8, SHIFT)
-    return img
 
 
 def _polygon_area(p: np.ndarray) -> float:
@@ -219,17 +228,34 @@ class CostEvaluator:
         out = np.empty(len(self.targets))
         for k, t in enumerate(self.targets):
             px = project_quads(t.camera, self._seen(t, quads_world))
-            out[k] = self._view_xor(k, px) / t.area
+            out[k] = self._view_xors(k, px[None])[0] / t.area
         return out
 
-    def _view_xor(self, k: int, quads_px: np.ndarray) -> float:
+    def _view_xors(self, k: int, quads_px: np.ndarray) -> np.ndarray:
+        """(B,) XOR pixel counts in view ``k`` of B chains' pixel quads (B, m, 4, 2), each as
+        :func:`render` draws it, plus its area outside the ROI (:func:`outside_area`); the
+        vertices are converted for all chains at once. Leaves the last chain's images in the
+        view's buffers."""
         t = self.targets[k]
         h, w = t.shape
-        model = render(quads_px, (h, w), t.x0, t.y0, out=self._model[k])
-        if t.valid is not None:
-            cv2.bitwise_and(model, t.valid, dst=model)
-        diff = cv2.bitwise_xor(model, t.observed, dst=self._diff[k])
-        return float(cv2.countNonZero(diff)) + outside_area(quads_px, t.x0, t.y0, w, h)
+        pts = quads_px - np.array([t.x0, t.y0], float)
+        finite = np.isfinite(pts).all(axis=(1, 2, 3))
+        fixed = _fixed_point(np.where(finite[:, None, None, None], pts, 0.0))
+        lo = np.array([t.x0 - 0.5, t.y0 - 0.5])
+        hi = np.array([t.x0 + w - 0.5, t.y0 + h - 0.5])
+        inside = ((quads_px >= lo) & (quads_px <= hi)).all(axis=(1, 2, 3))
+        model, diff = self._model[k], self._diff[k]
+        out = np.empty(len(quads_px))
+        for b in range(len(quads_px)):
+            model[:] = 0
+            if finite[b]:
+                _fill(model, fixed[b])
+            if t.valid is not None:
+                cv2.bitwise_and(model, t.valid, dst=model)
+            cv2.bitwise_xor(model, t.observed, dst=diff)
+            out[b] = float(cv2.countNonZero(diff)) + (0.0 if inside[b] else
+                                                       outside_area(quads_px[b], t.x0, t.y0, w, h))
+        return out
 
     def cost(self, quads_world: np.ndarray) -> float:
         """Combined cost over cameras (eq. 11)."""
@@ -244,14 +270,13 @@ class CostEvaluator:
             out = np.zeros((B, len(self.targets)))
             for k, t in enumerate(self.targets if B else ()):
                 for b, q in enumerate(visible_quads_batch(t.camera, quads_world, self.boxes)):
-                    out[b, k] = self._view_xor(k, project_quads(t.camera, q)) / t.area
+                    out[b, k] = self._view_xors(k, project_quads(t.camera, q)[None])[0] / t.area
             return np.array([combine(row) for row in out])
         self.evaluations += B
         out = np.zeros((B, len(self.targets)))
         for k, t in enumerate(self.targets if B else ()):
             px = project_quads(t.camera, quads_world.reshape(-1, 4, 3)).reshape(B, m, 4, 2)
-            for b in range(B):
-                out[b, k] = self._view_xor(k, px[b]) / t.area
+            out[:, k] = self._view_xors(k, px) / t.area
         return np.array([combine(row) for row in out])
 
     def last_diffs(self) -> list[np.ndarray]:

@@ -16,11 +16,12 @@ from .views import Field
 
 
 def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, iterations: int,
-                        traces: list[list[np.ndarray]] | None = None, state=None, cfg: FitConfig = DEFAULT):
+                        log: list | None = None, state=None, cfg: FitConfig = DEFAULT):
     """Robust (IRLS) Levenberg-Marquardt on a batch of (B, P) parameter vectors (see
     :func:`estimator.residuals.residuals`) at once. ``state``: (residuals, Jacobian, cost) at ``params`` when
-    already known. Returns (params (B, P), robust cost (B,), final state); appends every
-    candidate's iterated angles (n, 3) to ``traces[b]``."""
+    already known. Returns (params (B, P), robust cost (B,), final state); appends to ``log``
+    each iteration's (candidates still iterated (k,), their parameters (k, P)), from which
+    :func:`trace` reads one candidate's iterates."""
     params = np.array(params, float)
     B, N = params.shape
     na = 3 * chain.n
@@ -51,15 +52,25 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
             r[acc], J[acc] = r2[ok], J2[ok]
         mu[acc] = np.maximum(mu[acc] * 0.3, 1e-7)
         mu[active[~ok]] *= 10.0
-        if traces is not None:
-            for b in active:
-                traces[b].append(params[b, :na].reshape(chain.n, 3).copy())
+        if log is not None:
+            log.append((active, params[active]))
         small = np.max(np.abs(step[:, :na]), axis=1) < 1e-4
         done = (ok & small) | flat | (mu[active] > 1e4)
         active = active[~done]
         if active.size == 0:
             break
     return params, cost, (r, J, cost)
+
+
+def trace(log: list, b: int, n: int) -> list[np.ndarray]:
+    """Candidate ``b``'s iterated angles (n, 3), one per iteration it took part in, from a
+    :func:`levenberg_marquardt` ``log``."""
+    out = []
+    for active, params in log:
+        k = np.searchsorted(active, b)
+        if k < active.size and active[k] == b:
+            out.append(params[k, :3 * n].reshape(n, 3))
+    return out
 
 
 def levenberg_marquardt_one(fun, x: np.ndarray, iterations: int, rtol: float) -> np.ndarray:

@@ -81,16 +81,22 @@ def test_beam_scores_match_reference(prepared):
     assert len(compiled) == len(numpy) == 4
     assert all(np.array_equal(a, b) for a, b in zip(compiled, numpy))
     # the scores themselves, on random candidates' points and corners
-    pts = spec.base_position + rng.normal(scale=0.03, size=(2, 7, 13, 3))
+    pts = spec.base_position + rng.normal(scale=0.03, size=(4, 20, 13, 3))
+    base, prior, extra = rng.uniform(0, 50, 4), rng.uniform(0, 5, 20), np.zeros(80)
+    is_edge = np.arange(13) < 8
+    plate = sum(f.weight * reference.beam_edge_cost(f, pts, is_edge) for f in fields)
+    want = (base[:, None] + plate + prior[None, :]).ravel()
+    packed = _kernels_beam.pack_views(fields)
+    perm = np.arange(13)[::-1].copy()
+    args = (fields, packed, pts, 8, perm, base, prior, extra)
+    full = _kernels_beam.beam_totals(*args, 81, DEFAULT.delta_out_px, DEFAULT.delta_in_px)
+    assert np.allclose(full, want, rtol=1e-12, atol=0)
+    # Kept to the 10 best: those exact, every other one cut short or above them.
+    best = _kernels_beam.beam_totals(*args, 10, DEFAULT.delta_out_px, DEFAULT.delta_in_px)
+    order = np.argsort(full)
+    assert np.array_equal(np.argsort(best)[:10], order[:10]) and np.array_equal(best[order[:10]], full[order[:10]])
+    assert np.all(best[order[10:]] >= full[order[9]]) and np.isinf(best).sum() > 20
     for f in fields:
-        u, v, *_ = reference.project(f.camera, pts)
-        sdf, _, _, ignored = reference.lookup(f, u, v)
-        is_edge = np.arange(13) < 8
-        rho, _ = reference.robust(np.where(is_edge, sdf, np.maximum(sdf, 0.0)), is_edge & (sdf < 0))
-        if ignored is not None:
-            rho = np.where(ignored, 0.0, rho)
-        got = _kernels_beam.beam_edge_cost(f, pts, 8, DEFAULT.delta_out_px, DEFAULT.delta_in_px)
-        assert np.allclose(got, rho.sum(axis=2), rtol=1e-12, atol=0)
         corners = pts[0, :, :12]
         seg = np.array([(k, k + 1) for k in range(11)])
         cu, cv, *_ = reference.project(f.camera, corners)

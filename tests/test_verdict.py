@@ -405,9 +405,9 @@ def test_a_garbage_view_is_refused_without_a_second_look(monkeypatch):
     looks = []
     real = fit.fit_default
 
-    def counted(capture, callback=None, thorough=False, cfg=fit.DEFAULT):
+    def counted(capture, callback=None, thorough=False, cfg=fit.DEFAULT, first=None):
         looks.append(thorough)
-        return real(capture, callback, thorough, cfg)
+        return real(capture, callback, thorough, cfg, first)
 
     monkeypatch.setattr(fit, "fit_default", counted)
     capture = make_capture(4200, SyntheticOptions(cameras=2))
