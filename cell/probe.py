@@ -125,15 +125,17 @@ def end_measurable(est: Any) -> bool:
             and (PAST_END in est.verdict_reason or END_UNEXPLAINED in est.verdict_reason))
 
 
-PROBE_CORNER_M = 0.006
+PROBE_CORNER_M = 0.010
 """Before the simulated cell acts on a tip the needle confirmed, it touches the tip's two
 corners (the paper's tip_left, tip_right, ``inset`` inside the end and the edges): each must
-be tape within this distance of the point [m] (a little more than PROBE_CONFIRM_M: a twist
-a few degrees off moves a corner along the normal). A "tip" at the tape's side edge, or on
-its body with the end turned away, leaves a corner in the air: simulated episodes kept such
-tips (touched within 0.3 mm, nothing 6 mm past them), 16 and 22 mm from the end, and failed;
-with the corners probed both are refused (one corner untouched). Good tips touched their
-corners within 5.3 mm in 150 simulated episodes."""
+be tape within this distance of the point [m], else that corner is in the air. A "tip" at
+the tape's side edge, or on its body with the end turned away, leaves a corner in the air:
+simulated episodes kept such tips (touched within 0.3 mm, nothing 6 mm past them), 16 and
+22 mm from the end, and failed; with the corners probed both are refused (a corner not
+touched at all, the other not or 14 mm away). The corners of tips that were grasped touched
+within 8.7 mm in 150 simulated episodes (a twist some degrees off, or a curled corner, moves
+a corner 13 mm from the centre line by several mm along the normal); 6 mm refused 8 of
+them, 3-5 mm off, all grasped before."""
 
 
 def corners_on_tape(distances: Sequence[float | None]) -> bool:
