@@ -91,13 +91,6 @@ estimated tape (its centre line and faces): the estimate is a few millimetres of
 arching body (2.5 mm in episode 670065, whose pad touched the body 50 mm from the end on
 the approach and pushed the end out of the jaw; 530040 alike). Measured on fresh episodes
 710000-710099: the same outcomes with and without it."""
-APPROACH_BODY_MARGIN_M = 0.008
-"""... and this far [m] from the estimated tape's points more than APPROACH_BODY_FROM_GRASP_M
-from the grasp point: far along the body the estimate can be off by more (6 mm at 60 mm
-from the end in episode 760035, whose left pad touched the body there on the approach and
-pushed the end out of the jaw, with the tip 1.5 mm off); near the grasp point the open
-fingers must pass close to the tape to straddle it."""
-APPROACH_BODY_FROM_GRASP_M = 0.030
 TAPE_CLEARANCE_M = 0.005
 """The open gripper's fingers and palm keep this far [m] from the estimated tape's surface
 on the joint moves to the pre-grasp pose (a pad swept through a curled tape's body drags
@@ -514,8 +507,7 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
         raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits", str(e)) from None
     for points_on_tape in (tape, surface):
         if points_on_tape is not None:
-            _check_fingers_clear(points_on_tape, world_from_tcp["pregrasp"], world_from_tcp["grasp"], gripper,
-                                 grasp_position)
+            _check_fingers_clear(points_on_tape, world_from_tcp["pregrasp"], world_from_tcp["grasp"], gripper)
     q_pre, via = _reach_pregrasp(world_from_tcp["pregrasp"], flange["pregrasp"], tcp_from_flange, q_ref, ik,
                                  limits, points, shape, check_joint_path,
                                  tape_clear=None if surface is None else (surface, gripper))
@@ -757,21 +749,17 @@ def _follow_line(ik: IK, start: np.ndarray, end: np.ndarray, q0: np.ndarray, wha
     return q, along
 
 
-def _check_fingers_clear(tape: np.ndarray, start: np.ndarray, end: np.ndarray, gripper: GripperGeometry,
-                         grasp_position: np.ndarray) -> None:
+def _check_fingers_clear(tape: np.ndarray, start: np.ndarray, end: np.ndarray, gripper: GripperGeometry) -> None:
     """Refuse when a tape point lies inside an open finger or the palm, or within
-    APPROACH_TAPE_MARGIN_M of one (APPROACH_BODY_MARGIN_M where the point is more than
-    APPROACH_BODY_FROM_GRASP_M from ``grasp_position``), anywhere on the approach from
-    ``start`` to ``end`` (world_from_tcp)."""
+    APPROACH_TAPE_MARGIN_M of one, anywhere on the approach from ``start`` to ``end``
+    (world_from_tcp)."""
     boxes = gripper.finger_boxes_tcp()
     n = int(np.ceil(np.linalg.norm(end[:3, 3] - start[:3, 3]) / 0.002)) + 1
     # The approach only translates: the tape in the TCP frame at every sample at once.
     local0 = (tape - start[:3, 3]) @ start[:3, :3]                             # (M, 3)
     shift = np.linspace(0.0, 1.0, n + 1)[:, None] * ((end[:3, 3] - start[:3, 3]) @ start[:3, :3])
     local = local0[None] - shift[:, None]                                     # (n + 1, M, 3)
-    far = np.linalg.norm(tape - grasp_position, axis=1) > APPROACH_BODY_FROM_GRASP_M
-    margin = np.where(far, APPROACH_BODY_MARGIN_M, APPROACH_TAPE_MARGIN_M)[:, None]     # (M, 1)
-    inside = _in_boxes(local, boxes, margin)                                  # (boxes, n + 1, M)
+    inside = _in_boxes(local, boxes, APPROACH_TAPE_MARGIN_M)                    # (boxes, n + 1, M)
     if np.any(inside):
         hit = inside.any(axis=2)                                              # (boxes, n + 1)
         first = int(np.argmax(hit.any(axis=0)))                               # the earliest sample
@@ -781,9 +769,9 @@ def _check_fingers_clear(tape: np.ndarray, start: np.ndarray, end: np.ndarray, g
                                        f"{_mm(tape[np.argmax(inside[i, first])])} mm on the approach")
 
 
-def _in_boxes(local: np.ndarray, boxes: list, margin: "float | np.ndarray") -> np.ndarray:
+def _in_boxes(local: np.ndarray, boxes: list, margin: float) -> np.ndarray:
     """(boxes, ...) bool: which points ``local`` (..., 3), in the boxes' frame, lie inside
-    each (lo, hi) box grown by ``margin`` [m] (a number, or per point (..., 1))."""
+    each (lo, hi) box grown by ``margin`` [m]."""
     return np.stack([np.all((local > lo - margin) & (local < hi + margin), axis=-1) for lo, hi in boxes])
 
 

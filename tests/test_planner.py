@@ -421,24 +421,6 @@ def test_planned_straight_moves_keep_the_joint_speed_limit():
     assert checked >= 30
 
 
-def test_the_open_fingers_keep_more_from_the_tape_far_from_the_grasp_point():
-    """On the approach, estimated tape more than 30 mm from the grasp point keeps 8 mm from
-    the open fingers (APPROACH_BODY_MARGIN_M: in episode 760035 the body, estimated 6 mm off
-    60 mm from the end, was pushed out of the jaw by a pad), tape nearer 3 mm."""
-    from tapecell.cell.planner import APPROACH_BODY_FROM_GRASP_M, _check_fingers_clear
-
-    (lo, _), _, _ = GRIPPER.finger_boxes_tcp()        # the left finger, in the TCP frame
-    start, end = np.eye(4), np.eye(4)
-    start[2, 3] = -0.05                               # the pre-grasp pose, 50 mm back along the approach
-    inner = lo[1] - 0.005                             # 5 mm inside the left pad's face
-    near, far = np.array([[0.0, inner, -0.010]]), np.array([[0.0, inner, -0.040]])
-    assert np.linalg.norm(near) < APPROACH_BODY_FROM_GRASP_M < np.linalg.norm(far)
-    _check_fingers_clear(near, start, end, GRIPPER, np.zeros(3))
-    with pytest.raises(PlanRefused, match="finger would hit the tape"):
-        _check_fingers_clear(far, start, end, GRIPPER, np.zeros(3))
-    _check_fingers_clear(far + [0.0, -0.004, 0.0], start, end, GRIPPER, np.zeros(3))   # 9 mm inside: clear
-
-
 def test_the_open_fingers_keep_a_margin_from_the_tape_on_the_approach(monkeypatch):
     """On the straight approach the open fingers keep 3 mm (APPROACH_TAPE_MARGIN_M) from
     the estimated tape: a sheet of tape 2 mm inside the open jaw's pad faces (18 mm from the
@@ -446,7 +428,6 @@ def test_the_open_fingers_keep_a_margin_from_the_tape_on_the_approach(monkeypatc
     off along an arching body let a pad push the tape out of the jaw in episode 670065)."""
     import tapecell.cell.planner as planner
 
-    monkeypatch.setattr(planner, "APPROACH_BODY_FROM_GRASP_M", 1.0)   # the whole sheet is "near" the grasp point
     tip, nodes = tape(np.zeros(15))
     # A sheet 30 mm around the tip (every tilt and pitch of the jaw meets it).
     a, b = np.meshgrid(np.linspace(-0.03, 0.03, 25), np.linspace(-0.03, 0.03, 25))
