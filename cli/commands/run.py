@@ -22,9 +22,10 @@ into freedrive, you guide the needle onto the middle of the tape's end and press
 the hypothesis (the estimate or one of its alternatives) whose tip the needle confirms
 (within 4 mm, the only one so near and 1.5 mm closer than any other) becomes the answer;
 if none or several are, nothing moves. A "poor_fit" whose views show tape past the model's
-end, or whose end the model does not explain (and that has no alternative shape), is
-measured the same way: the needle on the tape's end, within 4 mm of the estimated end's
-line and at most 25 mm past it, moves the tip there; elsewhere nothing moves. Any other
+end, or whose end the model does not explain, is measured the same way: the needle on
+the tape's end, within 4 mm of the estimated end's line and at most 25 mm past it, moves
+the tip there. A touch that confirms nothing but lies 4-12 mm from exactly one tip refits
+that shape through it (kept when it still explains the views); elsewhere nothing moves. Any other
 "poor_fit" is refused: the model does not explain what was seen.
 
 Nothing moves without --execute. With --execute the robot's address and the plan are
