@@ -149,17 +149,23 @@ this [m], refits the shape through the touch (:func:`tapecell.estimator.touch.re
 views leave such an end a few millimetres off (its depth where one camera sees it, an end
 hooked over); the refitted tip is then probed afresh."""
 REFIT_COST_RATIO = 2.0
-"""A refit whose silhouette cost (eq. 11) exceeds this multiple of the shape it started
-from explains the views too badly to be probed."""
+"""A refit whose silhouette cost (eq. 11) exceeds this multiple of the best hypothesis'
+(the estimate's or an alternative's) explains the views too badly to be probed."""
+PROBE_PAST_CLEAR_M = 0.012
+"""Past a refitted tip (see REFIT_TOUCH_MAX_M) no tape may be touched within this distance
+[m] of the point probed there: a touch on the tape's body, refitted as its end, has tape
+around the point past it (a simulated episode touched it 8.9 mm away, and the refit was
+23 mm from the end)."""
 
 
-def refit_acceptable(refitted: Any, before: Any) -> bool:
-    """May the needle probe ``refitted`` (an ``estimator.Estimate`` refitted through a
-    touch) to confirm it? Its views must be explained about as well as ``before``'s (the
-    shape it started from, or its cost) and as a whole: "ok", "hidden", or a ``poor_fit`` for
-    its end alone (tape past it, an end left unexplained), never ambiguous."""
-    cost = before if isinstance(before, (int, float)) else before.cost
-    if refitted.cost > REFIT_COST_RATIO * cost:
+def refit_acceptable(refitted: Any, estimate: Any) -> bool:
+    """May ``refitted`` (an ``estimator.Estimate`` refitted through a touch) be confirmed by
+    the needle? Its views must be explained about as well as the best hypothesis of
+    ``estimate`` (its own cost or an alternative's; REFIT_COST_RATIO) and as a whole: "ok",
+    "hidden", or a ``poor_fit`` for its end alone (tape past it, an end left unexplained),
+    never ambiguous."""
+    best = min([float(estimate.cost)] + [float(a.cost) for a in estimate.alternatives])
+    if refitted.cost > REFIT_COST_RATIO * best:
         return False
     if refitted.verdict is Verdict.POOR_FIT:
         return PAST_END in refitted.verdict_reason or END_UNEXPLAINED in refitted.verdict_reason

@@ -1,8 +1,8 @@
 """Compiled scores of the global stage (numba): beam candidates' sample points against the
-views' signed distance fields (exactly for the candidates that may be kept), complete chains'' coverage of the observed outline, the beam's
-candidate generation and diversity, and the mask clean-up's label maps. Like
-:mod:`estimator._kernels`, each mirrors the NumPy reference (:mod:`estimator.reference`) in
-the same order of arithmetic."""
+views' signed distance fields (exactly for the candidates that may be kept), complete
+chains' coverage of the observed outline, the beam's candidate generation and diversity,
+and the mask clean-up's label maps. Like :mod:`estimator._kernels`, each mirrors the NumPy
+reference (:mod:`estimator.reference`) in the same order of arithmetic."""
 from __future__ import annotations
 
 import math

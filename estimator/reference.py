@@ -264,8 +264,8 @@ def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, cfg: FitConfig
 
 def beam_edge_cost(f, pts: np.ndarray, is_edge: np.ndarray, cfg: FitConfig = DEFAULT) -> np.ndarray:
     """The beam's score of candidates' sample points (..., s, 3) in one view: their summed
-    robust losses against the view's signed distance field (NumPy reference of
-    :func:`_kernels_beam.beam_edge_cost`)."""
+    robust losses against the view's signed distance field (NumPy reference of the per-view
+    sums in :func:`_kernels_beam.best_totals`)."""
     u, v, *_ = project(f.camera, pts)
     sdf, _, _, ignored = lookup(f, u, v)
     r = np.where(is_edge, sdf, np.maximum(sdf, 0.0))

@@ -40,7 +40,9 @@ def end_rows(point: np.ndarray, depth: float, weight: float = TOUCH_PX_PER_M):
     off along the needle's way): a function (corners (3m, 3), Jacobian (3m, 3, P)) ->
     (residuals (3,), Jacobian (3, P)), for corners laid out as :meth:`Chain.corners` gives
     them (P_C, then P_L, then P_R, each n + 1). The nearest point's place on the centre line
-    is held fixed for the Jacobian (exact for the cost's gradient where it is inside)."""
+    is held fixed for the Jacobian (exact for the cost's gradient where it is inside). The
+    last ``depth`` is taken within the last plate (``depth`` at most its length: 4 mm of the
+    strip's 7.5 mm plates)."""
     point = np.asarray(point, float)
 
     def rows(c: np.ndarray, J: np.ndarray):
@@ -80,19 +82,17 @@ def refit(capture: Capture, angles: np.ndarray, point: np.ndarray, depth: float,
     x = levenberg_marquardt_one(fun, np.asarray(angles, float).ravel().copy(), cfg.lm_iterations * 3, cfg.lm_rtol)
     plate = x.reshape(chain.n, 3)
     tip = None
+    angles_out = plate
+    shape, view_costs, evaluator = _costed(capture, plate)
     if cfg.strip:
+        # The strip's end frame, unless its chain explains the views far worse than the
+        # plate fit (as estimate()'s guard).
         output = strip_stage(chain, fields, plate, cfg, extra=rows)
         out = output(cfg.strip_frame_weight)
-        shape, view_costs, evaluator = _costed(capture, out)
-        _, plate_costs, _ = _costed(capture, plate)
-        if combine(view_costs) <= cfg.strip_guard * combine(plate_costs):
+        costed = _costed(capture, out)
+        if combine(costed[1]) <= cfg.strip_guard * combine(view_costs):
             angles_out, tip = out, output.tip
-        else:
-            angles_out = plate
-            shape, view_costs, evaluator = _costed(capture, plate)
-    else:
-        angles_out = plate
-        shape, view_costs, evaluator = _costed(capture, plate)
+            shape, view_costs, evaluator = costed
     tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
     verdict, reason, tip_views, _, offsets = _judge(capture, evaluator, view_costs, shape, tip_position,
                                                     tip_rotation, combine(view_costs), [])

@@ -261,27 +261,35 @@ the tape [m]: tape there means that end is not the tape's."""
 
 
 class _Needle:
-    """The needle on the simulated arm, for the probes of one episode: mounted on entry;
-    parked, the gripper remounted and opened on exit. ``probes``, when given, gets each probe
+    """The needle on the simulated arm, for the probes of one episode: mounted on entering
+    the ``with`` block; on leaving it (also on an error), the arm parked and the gripper
+    remounted and opened. ``probes``, when given, gets each probe
     (label, aimed point, touched point or None, cell time) for the recording; ``notes`` (the
     episode's result), ``probed_corners_mm``: the corners' distances [mm] in order."""
 
     def __init__(self, cell, sim_arm, probes: list | None, notes: dict | None = None):
         from tapecell.cell.probe import ProbeParams
-        from .prober import SimProber
 
         self.cell, self.sim_arm, self.probes, self.notes = cell, sim_arm, probes, notes
         self.params = ProbeParams()
-        sim_arm.select_tool("needle")
-        self.prober = SimProber(cell, sim_arm, self.params)
 
     def __enter__(self) -> "_Needle":
+        from .prober import SimProber
+
+        self.sim_arm.select_tool("needle")
+        try:
+            self.prober = SimProber(self.cell, self.sim_arm, self.params)
+        except BaseException:
+            self.__exit__()
+            raise
         return self
 
     def __exit__(self, *exc) -> None:
-        self.sim_arm.park()
-        self.sim_arm.select_tool("gripper")
-        self.sim_arm.open_gripper()
+        try:
+            self.sim_arm.park()
+        finally:
+            self.sim_arm.select_tool("gripper")
+            self.sim_arm.open_gripper()
 
     def touch(self, label: str, target: np.ndarray, R: np.ndarray) -> tuple[float, np.ndarray] | None:
         """(distance [m] from ``target`` to where the needle touched tape, that point),
@@ -364,7 +372,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                 found[k] = None          # tape beyond its end: not the end
         report = [None if d is None else round(1e3 * d, 2) for d in found]
         best, reason = confirmed(found), ""
-        if best is None and len(near) > 1:
+        if best is None and sum(d is not None and d <= PROBE_CONFIRM_M for d in found) > 1:
             # Several tips lie on the tape (a fold's edge is tape as the true end is): probe
             # where the shapes disagree instead, each at the point of its own end farthest from
             # every other hypothesis; the one shape whose point is tape, and whose rivals' are
@@ -387,10 +395,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
         if best is None and not near and len(off) == 1 and capture is not None:
             # One tip touched tape a few mm off, none on it: refit that shape through the touch.
             k = off[0]
-            angles = est.angles if k == 0 else est.alternatives[k - 1].angles
-            cost = est.cost if k == 0 else est.alternatives[k - 1].cost
-            refitted = _refit_and_probe(needle, capture, angles, cost, hits[k], PROBE_BEYOND_M,
-                                        f"hypothesis {k}'s tip")
+            refitted = _refit_and_probe(needle, capture, est, k, hits[k], PROBE_BEYOND_M, f"hypothesis {k}'s tip")
             if refitted is not None:
                 return refitted, report
     if best is None:
@@ -398,31 +403,34 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     return adopt(est, best, est_spec(cell), reason), report
 
 
-def _refit_and_probe(needle: _Needle, capture: Capture, angles: np.ndarray, cost: float, hit, beyond: float,
-                     what: str):
-    """The shape ``angles`` (its silhouette cost ``cost``) refitted through the needle's
-    touch ``hit`` (distance [m], point) near its end (:func:`tapecell.estimator.touch.refit`,
-    the end's centre ``inset`` inside it at the touch), when the refit still explains the
-    views (:func:`tapecell.cell.probe.refit_acceptable`) and the needle, sent to the refit's
-    tip, touches tape within PROBE_CONFIRM_M of it and none ``beyond`` [m] past it: then with
-    verdict "ok"; else None."""
-    from tapecell.cell.probe import REFIT_TOUCH_MAX_M, refit_acceptable, tape_points
+def _refit_and_probe(needle: _Needle, capture: Capture, est, k: int, hit, beyond: float, what: str):
+    """Hypothesis ``k`` of ``est`` (0: itself, else its alternative k - 1) refitted through
+    the needle's touch ``hit`` (distance [m], point) near its end
+    (:func:`tapecell.estimator.touch.refit`: the touch within the last 2 ``inset`` of the
+    end's centre line, where the needle aims ``inset`` inside the end), kept with verdict
+    "ok" when the refit still explains the views (:func:`tapecell.cell.probe.refit_acceptable`)
+    and the needle finds tape at the refit's tip (within PROBE_CONFIRM_M; it passes through
+    the touch, so this mostly checks the needle's way there), none within PROBE_PAST_CLEAR_M
+    of the point ``beyond`` [m] past it, and tape at both its corners (within PROBE_CORNER_M):
+    the tip is then within about ``beyond`` of the end. Else None."""
+    from tapecell.cell.probe import PROBE_PAST_CLEAR_M, refit_acceptable, tape_points
     from tapecell.estimator.touch import refit
 
-    refitted = refit(capture, angles, hit[1], 2 * needle.params.inset)
-    if not refit_acceptable(refitted, cost):
+    shape = est if k == 0 else est.alternatives[k - 1]
+    refitted = refit(capture, shape.angles, hit[1], 2 * needle.params.inset)
+    if not refit_acceptable(refitted, est):
         return None
     tip, R = refitted.tip_position, refitted.tip_rotation
     at_tip = needle.distance("refitted tip", tape_points(tip, R, capture.tape.width, needle.params.inset)["tip"], R)
     if at_tip is None or at_tip > PROBE_CONFIRM_M:
         return None
     past = needle.distance("beyond the refitted tip", tip + beyond * R[:, 0], R)
-    if past is not None and past <= REFIT_TOUCH_MAX_M:
+    if past is not None and past <= PROBE_PAST_CLEAR_M:
         return None             # tape near the point past the end (a touch on the tape's body)
     if not needle.corners_confirm(tip, R, capture.tape.width):
         return None
-    reason = (f"refitted through the needle's touch {1e3 * hit[0]:.1f} mm from {what}: tape at the new tip "
-              f"({1e3 * at_tip:.1f} mm) and none {1e3 * beyond:.0f} mm past it")
+    reason = (f"refitted through the needle's touch {1e3 * hit[0]:.1f} mm from {what}: tape at its tip and "
+              f"corners, none {1e3 * beyond:.0f} mm past it")
     return dataclasses.replace(refitted, verdict=Verdict.OK, verdict_reason=reason)
 
 
@@ -465,7 +473,7 @@ def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None
                     tip + (found[-1] if found else 0.0) * R[:, 0], R, width):
                 return est, report_steps(found)     # a corner in the air: not the end
         elif hit is not None and hit[0] <= REFIT_TOUCH_MAX_M and capture is not None:
-            refitted = _refit_and_probe(needle, capture, est.angles, est.cost, hit, PAST_END_STEPS_M[0], "the tip")
+            refitted = _refit_and_probe(needle, capture, est, 0, hit, PAST_END_STEPS_M[0], "the tip")
             if refitted is not None:
                 return refitted, []
     report = report_steps(found)

@@ -64,3 +64,25 @@ def test_refit_through_the_touched_end_moves_a_wrong_end_onto_the_tape():
     for bad in ([], [np.nan, 0.0, 0.0]):
         with pytest.raises(EstimateError, match="touched point"):
             refit(capture, est.angles, np.array(bad), 0.004)
+
+
+def test_the_real_cells_refit_keeps_its_tip_at_the_touch_and_never_moves_back_past_seen_tape():
+    """The real cell refits through the operator's touch on the tape's end
+    (cli.commands.run._refit_through): kept when the refit's tip lies at the touch; where the
+    views show tape past the model's end, a touch 8 mm back along the tape (on its body, not
+    its end) is refused: the end may not move back over tape the views see."""
+    from tapecell.cli.commands.run import _refit_through
+    from tapecell.estimator import forward_kinematics
+
+    capture, _ = make_capture_with_angles(4102, SyntheticOptions(cameras=2))
+    est = estimate(capture)
+    angles = est.angles.copy()
+    angles[-1, 1] += 0.3
+    shape = forward_kinematics(capture.tape, angles)
+    off = dataclasses.replace(est, angles=angles, nodes=shape.nodes, tip_position=shape.nodes[-1],
+                              tip_rotation=shape.frames[-1], verdict=Verdict.HIDDEN)
+    true_tip, trunk = capture.truth.tip_position, capture.truth.tip_rotation[:, 0]
+    settled = _refit_through(capture, off, 0, true_tip, "the tip")
+    assert settled is not None and settled.verdict is Verdict.OK
+    assert np.linalg.norm(settled.tip_position - true_tip) < 0.002
+    assert _refit_through(capture, off, 0, true_tip - 0.008 * trunk, "the tip", past_end=True) is None

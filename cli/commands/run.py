@@ -270,6 +270,7 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
 
     from tapecell.cell.probe import PAST_END_MAX_M, PROBE_CONFIRM_M, REFIT_TOUCH_MAX_M, measured_end
     from tapecell.estimator import Verdict
+    from tapecell.estimator.verdict import PAST_END
 
     touched = _touch_end(cfg, yes, f"the estimate is {est.verdict.value} ({est.verdict_reason})",
                          "then plan the grasp at the end the needle measured, show it and ask again before moving",
@@ -279,7 +280,7 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
     end = measured_end(tip, trunk, touched)
     if end is None and float(np.linalg.norm(touched - tip)) <= REFIT_TOUCH_MAX_M:
         # Off the end's line but a few mm from the tip: refit the shape through the touch.
-        settled = _refit_through(capture, est, 0, touched, "the tip")
+        settled = _refit_through(capture, est, 0, touched, "the tip", past_end=PAST_END in est.verdict_reason)
         if settled is not None:
             story.add("estimate", None, (capture, settled), "after probing")
             return settled
@@ -295,21 +296,29 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
     return settled
 
 
-def _refit_through(capture, est, k: int, touched: np.ndarray, what: str):
+def _refit_through(capture, est, k: int, touched: np.ndarray, what: str, past_end: bool = False):
     """Hypothesis ``k`` of ``est`` (0: itself, else its alternative k - 1) refitted through
     the operator's touch ``touched`` (3,) [m] on the middle of the tape's end
-    (:func:`tapecell.estimator.touch.refit`), verdict "ok" when the refit still explains the
-    views (:func:`tapecell.cell.probe.refit_acceptable`); else None. The operator put the
-    needle on the end: no further touch is asked for."""
+    (:func:`tapecell.estimator.touch.refit`, the touch within the end's last ``inset``),
+    verdict "ok" when the refit still explains the views
+    (:func:`tapecell.cell.probe.refit_acceptable`) and its tip is within PROBE_CONFIRM_M of
+    the touch (the operator put the needle on the end: no further touch is asked for), and,
+    with ``past_end`` (the views show tape past the model's end), the tip did not move back
+    along the tape by more than PROBE_CONFIRM_M; else None."""
     import dataclasses
 
-    from tapecell.cell.probe import ProbeParams, refit_acceptable
+    from tapecell.cell.probe import PROBE_CONFIRM_M, ProbeParams, refit_acceptable
     from tapecell.estimator import Verdict
     from tapecell.estimator.touch import refit
 
     shape = est if k == 0 else est.alternatives[k - 1]
-    refitted = refit(capture, shape.angles, touched, 2 * ProbeParams().inset)
-    if not refit_acceptable(refitted, shape.cost):
+    refitted = refit(capture, shape.angles, touched, ProbeParams().inset)
+    if not refit_acceptable(refitted, est):
+        return None
+    if float(np.linalg.norm(refitted.tip_position - touched)) > PROBE_CONFIRM_M:
+        return None
+    back = float((shape.tip_position - refitted.tip_position) @ shape.tip_rotation[:, 0])
+    if past_end and back > PROBE_CONFIRM_M:
         return None
     d = float(np.linalg.norm(touched - shape.tip_position))
     reason = (f"refitted through the needle's touch on the tape's end, {1e3 * d:.1f} mm from {what} "
