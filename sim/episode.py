@@ -347,12 +347,13 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     alternatives with the needle, and past each touched tip (tape there: not the end).
     Returns (the estimate to act on, with verdict "ok" when exactly one hypothesis was
     confirmed, else unchanged; per hypothesis the distance [mm] from the aimed point to
-    the touched one, None where nothing was touched). Where none is confirmed but exactly
-    one hypothesis' tip touched tape a few millimetres off (within REFIT_TOUCH_MAX_M), and
-    ``capture`` is given, that shape is refitted through the touch and the refit's tip
-    probed the same way (:func:`_refit_and_probe`). The gripper is remounted and opened
-    afterwards. ``probes``, when given, gets each probe (label, aimed point, touched point or
-    None, cell time) for the recording."""
+    the touched one, None where nothing was touched). A confirmed tip is kept only when both
+    its corners are tape too (:func:`tapecell.cell.probe.corners_on_tape`). Where none is
+    confirmed and none touched within PROBE_CONFIRM_M, but exactly one hypothesis' tip
+    touched tape a few millimetres off (within REFIT_TOUCH_MAX_M), and ``capture`` is given,
+    that shape is refitted through the touch and probed again (:func:`_refit_and_probe`).
+    The gripper is remounted and opened afterwards. ``probes``, ``notes``: see
+    :class:`_Needle`."""
     from tapecell.cell.probe import REFIT_TOUCH_MAX_M, adopt, confirmed, tape_points
 
     hypotheses = [(est.tip_position, est.tip_rotation, None)]
@@ -452,10 +453,11 @@ def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None
     centre line PAST_END_STEPS_M beyond it, until one finds no tape there. Returns (the
     estimate with verdict "ok" and its tip moved to the last point that was tape, or kept
     when the first step found none; unchanged when the tip is not tape or tape goes on
-    past the last step; the steps [mm] that were tape). Where the tip's probe touched tape a
-    few millimetres off (within REFIT_TOUCH_MAX_M) and ``capture`` is given, the shape is
-    refitted through the touch and its new tip probed (:func:`_refit_and_probe`, nothing
-    PAST_END_STEPS_M[0] past it)."""
+    past the last step; the steps [mm] that were tape). The end kept must have tape at both
+    its corners (:func:`tapecell.cell.probe.corners_on_tape`). Where the tip's probe touched
+    tape a few millimetres off (within REFIT_TOUCH_MAX_M) and ``capture`` is given, the shape
+    is refitted through the touch and its new tip probed (:func:`_refit_and_probe`, nothing
+    PAST_END_STEPS_M[0] past it). ``probes``, ``notes``: see :class:`_Needle`."""
     from tapecell.cell.probe import REFIT_TOUCH_MAX_M, tape_points
 
     tip, R = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)
