@@ -372,7 +372,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
             if past is not None and past <= PROBE_CONFIRM_M:
                 found[k] = None          # tape beyond its end: not the end
         report = [None if d is None else round(1e3 * d, 2) for d in found]
-        best, reason = confirmed(found), ""
+        best, reason, cornered = confirmed(found), "", False
         if best is None and sum(d is not None and d <= PROBE_CONFIRM_M for d in found) > 1:
             # Several tips lie on the tape (a fold's edge is tape as the true end is): probe
             # where the shapes disagree instead, each at the point of its own end farthest from
@@ -388,9 +388,18 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                 best = closest
                 reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip, every "
                           f"other {PROBE_WIDE_MARGIN_M * 1e3:.1f} mm farther or more)")
+            elif k is None:
+                # Nor which is closer: the one touched tip whose corners are tape, if only one.
+                touched = [j for j, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
+                whole = [j for j in touched if needle.corners_confirm(hypotheses[j][0], hypotheses[j][1], width)]
+                if len(whole) == 1:
+                    best, cornered = whole[0], True
+                    reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip): the "
+                              f"only touched tip of {len(touched)} whose corners are tape")
         elif best is not None:
             reason = f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip)"
-        if best is not None and not needle.corners_confirm(hypotheses[best][0], hypotheses[best][1], width):
+        if best is not None and not cornered and not needle.corners_confirm(hypotheses[best][0], hypotheses[best][1],
+                                                                           width):
             best = None                  # a corner in the air: the "tip" is not the tape's end
         off = [k for k, h in enumerate(hits) if h is not None and PROBE_CONFIRM_M < h[0] <= REFIT_TOUCH_MAX_M]
         if best is None and not near and len(off) == 1 and capture is not None:

@@ -254,12 +254,13 @@ def test_needle_refits_an_end_it_touched_off_and_checks_the_corners():
     is refitted through the touch, and the refit's tip, its two corners and a point past it
     are probed before it is kept (within 1 mm of the end). Seed 4: a "tip" on the tape's side
     edge with its trunk pointing off the tape (tape at it, none 6 mm past it: what was
-    confirmed before) is refused: one of its corners is in the air."""
+    confirmed before) is refused: one of its corners is in the air; beside the true end as
+    another hypothesis, the true end is kept, the only touched tip whose corners are tape."""
     import dataclasses
 
     from tapecell.cell.config import load_cell_config
     from tapecell.cell.probe import PROBE_CONFIRM_M, PROBE_CORNER_M, REFIT_TOUCH_MAX_M
-    from tapecell.estimator import Verdict
+    from tapecell.estimator import Alternative, Verdict
     from tapecell.sim.arm import SimArm
     from tapecell.sim.cell import SimCell
     from tapecell.sim.episode import resolve_by_probing
@@ -288,10 +289,20 @@ def test_needle_refits_an_end_it_touched_off_and_checks_the_corners():
                                    verdict=Verdict.HIDDEN, alternatives=())
         notes, probes = {}, []
         refused, touched = resolve_by_probing(cell, arm, side, cfg.tape.width, probes, None, notes)
+        # The true end and that side-edge "tip" as two hypotheses of one shape: both tips are
+        # tape with none past them, nothing tells where the shapes disagree (they are one
+        # shape) nor which is clearly closer; only the true end has both corners on tape.
+        both = dataclasses.replace(est, tip_position=truth[:3, 3], tip_rotation=R, verdict=Verdict.AMBIGUOUS,
+                                   alternatives=(Alternative(est.cost, side.tip_position, side.tip_rotation,
+                                                             est.angles),))
+        kept, touched2 = resolve_by_probing(cell, arm, both, cfg.tape.width)
     assert touched[0] is not None and touched[0] < 1e3 * PROBE_CONFIRM_M          # tape at the "tip" ...
     assert all(p["touched"] is None for p in probes if p["label"].startswith("beyond"))   # ... none past it
     assert refused.verdict is Verdict.HIDDEN
     assert any(d is None or d > 1e3 * PROBE_CORNER_M for d in notes["probed_corners_mm"])
+    assert all(d is not None and d < 1e3 * PROBE_CONFIRM_M for d in touched2)
+    assert kept.verdict is Verdict.OK and "the only touched tip of 2 whose corners are tape" in kept.verdict_reason
+    assert np.allclose(kept.tip_position, truth[:3, 3])
 
 
 def test_an_end_the_model_does_not_explain_is_measured_by_the_needle(capsys):
