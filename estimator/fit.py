@@ -343,6 +343,8 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     folded = verdict is Verdict.OK and float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN)
     if method == "default" and second_look and not thorough and (folded or unsure):
-        second = _look(capture, method, None, True, config, True, first)
+        # A fold that is "ok" gets a smaller thorough beam (FitConfig.fold_beam).
+        look = dataclasses.replace(config, thorough_beam=config.fold_beam) if folded else config
+        second = _look(capture, method, None, True, look, True, first)
         return dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
     return est
