@@ -13,8 +13,12 @@ from tapecell.estimator.errors import TapecellError
 EPISODE_HELP = """Run one simulated grasp episode: randomise the tape (seed), park the arm,
 render, segment and estimate, plan a grasp at the tip, execute it with the simulated UR5e,
 and check physically that both pads closed on the tape and that the tip followed the
-gripper through the lift. Prints one tape-episode/1 JSON line; exit status 1 when the
-grasp failed."""
+gripper through the lift. Only an "ok" estimate is acted on; a "hidden" or "ambiguous" one,
+or a "poor_fit" for its end alone, is first settled with the needle where it can be (it
+touches the hypotheses' tips, their corners and past them, measures an end along the
+tape, or refits the shape through a touch a few mm off), else refused. Prints one
+tape-episode/1 JSON line ("outcome": grasped, refused or failed); exit status 1 when the
+episode did not grasp."""
 
 EPISODES_HELP = """Run many episodes in parallel: local processes (the default) or Ray tasks
 (--backend ray: a local Ray bound to 127.0.0.1, or a running cluster with --address).
