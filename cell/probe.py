@@ -172,6 +172,19 @@ def refit_acceptable(refitted: Any, estimate: Any) -> bool:
     return refitted.verdict in (Verdict.OK, Verdict.HIDDEN)
 
 
+def refit_hypothesis(capture: Any, estimate: Any, k: int, touched: np.ndarray, depth: float) -> Any:
+    """Hypothesis ``k`` of ``estimate`` (0: itself, else its alternative k - 1) refitted to
+    ``capture``'s views with its end through the needle's touch ``touched`` (3,) [m] (within
+    ``depth`` [m] of the end: :func:`tapecell.estimator.touch.refit`), when the refit may be
+    confirmed (:func:`refit_acceptable`); else None. What confirms it is the caller's: the
+    simulated needle probes it, the real cell's operator put the needle on the end."""
+    from tapecell.estimator.touch import refit
+
+    shape = estimate if k == 0 else estimate.alternatives[k - 1]
+    refitted = refit(capture, shape.angles, touched, depth)
+    return refitted if refit_acceptable(refitted, estimate) else None
+
+
 def measured_end(tip_position: np.ndarray, trunk: np.ndarray, touched: np.ndarray) -> np.ndarray | None:
     """Where the tape's end is, from a needle touch ``touched`` (3,) [m] on it, for an end
     estimated at ``tip_position`` (3,) with the trunk direction ``trunk`` (3,): the touch

@@ -95,6 +95,18 @@ def levenberg_marquardt_one(fun, x: np.ndarray, iterations: int, rtol: float) ->
     return x
 
 
+def with_rows(fun, corners, extra):
+    """``fun`` (x -> residuals, Jacobian, cost) with ``extra``'s rows (corners (k, 3),
+    Jacobian (k, 3, P)) -> (residuals, Jacobian) on ``corners(x)`` appended, their half
+    squared sum added to the cost: for :func:`levenberg_marquardt_one`."""
+    def joined(x):
+        r, J, cost = fun(x)
+        re, Je = extra(*corners(x))
+        return np.concatenate([r, re]), np.vstack([J, Je]), cost + 0.5 * re @ re
+
+    return joined
+
+
 def corner_fit(corners, goal: np.ndarray, weight: np.ndarray | float = 1.0, extra=None):
     """Residual function for :func:`levenberg_marquardt_one` pulling ``corners(x)`` -> (c (k, 3), J
     (k, 3, P)) onto ``goal`` (k, 3), each corner weighted by ``weight`` ((k,) or scalar);

@@ -14,7 +14,7 @@ import numpy as np
 from .chain import Chain
 from .config import DEFAULT, FitConfig
 from .residuals import residuals
-from .solver import corner_fit, levenberg_marquardt_one
+from .solver import corner_fit, levenberg_marquardt_one, with_rows
 from .tape import TapeSpec, forward_kinematics
 from .views import Field
 
@@ -103,7 +103,9 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
     x0 = np.zeros(strip.T.shape[1])
     x0[:3] = angles[0]
     x = levenberg_marquardt_one(corner_fit(strip.corners, target), x0, 20, 1e-4)
-    fit = (lambda y: strip.residuals(fields, y)) if extra is None else (lambda y: _with_rows(strip, fields, y, extra))
+    fit = functools.partial(strip.residuals, fields)
+    if extra is not None:
+        fit = with_rows(fit, strip.corners, extra)
     x = levenberg_marquardt_one(fit, x, cfg.strip_iterations, cfg.strip_rtol)
     fine = forward_kinematics(strip.fine, strip.angles(x))
     # The output chain: the plate chain closest to the strip at the model's nodes.
@@ -118,13 +120,6 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
 
     output.tip = (fine.nodes[-1].copy(), fine.frames[-1].copy())   # the strip's end frame
     return output
-
-
-def _with_rows(strip: Strip, fields: list[Field], x: np.ndarray, extra):
-    """:meth:`Strip.residuals` plus ``extra``'s rows on the strip's fine corners."""
-    r, J, cost = strip.residuals(fields, x)
-    re, Je = extra(*strip.corners(x))
-    return np.concatenate([r, re]), np.vstack([J, Je]), cost + 0.5 * re @ re
 
 
 def _tip_frame_rows(chain: Chain, tip_frame: np.ndarray, weight: float):

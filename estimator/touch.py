@@ -23,7 +23,7 @@ from .errors import EstimateError
 from .result import Estimate
 from .residuals import residuals
 from .silhouette import combine
-from .solver import levenberg_marquardt_one
+from .solver import levenberg_marquardt_one, with_rows
 from .strip import strip_stage
 from .views import prepare
 
@@ -73,12 +73,11 @@ def refit(capture: Capture, angles: np.ndarray, point: np.ndarray, depth: float,
     fields = [prepare(v, capture.scene, cfg) for v in capture.views]
     rows = end_rows(point, depth)
 
-    def fun(x: np.ndarray):
+    def views(x: np.ndarray):
         r, J, cost = residuals(chain, fields, x[None], True, cfg)
-        c, Jc = chain.corners(x.reshape(chain.n, 3))
-        rt, Jt = rows(c, Jc)
-        return np.concatenate([r[0], rt]), np.vstack([J[0], Jt]), cost[0] + 0.5 * rt @ rt
+        return r[0], J[0], cost[0]
 
+    fun = with_rows(views, lambda x: chain.corners(x.reshape(chain.n, 3)), rows)
     x = levenberg_marquardt_one(fun, np.asarray(angles, float).ravel().copy(), cfg.lm_iterations * 3, cfg.lm_rtol)
     plate = x.reshape(chain.n, 3)
     tip = None

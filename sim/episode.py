@@ -323,22 +323,17 @@ class _Needle:
         hit = self.touch(label, target, R)
         return None if hit is None else hit[0]
 
-    def corners(self, tip: np.ndarray, R: np.ndarray, width: float) -> list[float | None]:
-        """:meth:`distance` at the two corners of the end at ``tip`` (frame ``R``)."""
-        from tapecell.cell.probe import tape_points
+    def corners_on_tape(self, tip: np.ndarray, R: np.ndarray, width: float) -> bool:
+        """Are both corners of the end at ``tip`` (frame ``R``) tape
+        (:func:`tapecell.cell.probe.corners_on_tape` of their :meth:`distance`)?"""
+        from tapecell.cell.probe import corners_on_tape, tape_points
 
         points = tape_points(tip, R, width, self.params.inset)
         found = [self.distance(f"corner {side}", points[f"tip_{side}"], R) for side in ("left", "right")]
         if self.notes is not None:
             self.notes.setdefault("probed_corners_mm", []).extend(
                 None if d is None else round(1e3 * d, 2) for d in found)
-        return found
-
-    def corners_confirm(self, tip: np.ndarray, R: np.ndarray, width: float) -> bool:
-        """Are both corners of the end at ``tip`` tape (:func:`tapecell.cell.probe.corners_on_tape`)?"""
-        from tapecell.cell.probe import corners_on_tape
-
-        return corners_on_tape(self.corners(tip, R, width))
+        return corners_on_tape(found)
 
 
 def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None, capture: Capture | None = None,
@@ -372,8 +367,9 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
             if past is not None and past <= PROBE_CONFIRM_M:
                 found[k] = None          # tape beyond its end: not the end
         report = [None if d is None else round(1e3 * d, 2) for d in found]
+        on_tape = [k for k, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
         best, reason, cornered = confirmed(found), "", False
-        if best is None and sum(d is not None and d <= PROBE_CONFIRM_M for d in found) > 1:
+        if best is None and len(on_tape) > 1:
             # Several tips lie on the tape (a fold's edge is tape as the true end is): probe
             # where the shapes disagree instead, each at the point of its own end farthest from
             # every other hypothesis; the one shape whose point is tape, and whose rivals' are
@@ -390,15 +386,14 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                           f"other {PROBE_WIDE_MARGIN_M * 1e3:.1f} mm farther or more)")
             elif k is None:
                 # Nor which is closer: the one touched tip whose corners are tape, if only one.
-                touched = [j for j, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
-                whole = [j for j in touched if needle.corners_confirm(hypotheses[j][0], hypotheses[j][1], width)]
+                whole = [j for j in on_tape if needle.corners_on_tape(hypotheses[j][0], hypotheses[j][1], width)]
                 if len(whole) == 1:
                     best, cornered = whole[0], True
                     reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip): the "
-                              f"only touched tip of {len(touched)} whose corners are tape")
+                              f"only touched tip of {len(on_tape)} whose corners are tape")
         elif best is not None:
             reason = f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip)"
-        if best is not None and not cornered and not needle.corners_confirm(hypotheses[best][0], hypotheses[best][1],
+        if best is not None and not cornered and not needle.corners_on_tape(hypotheses[best][0], hypotheses[best][1],
                                                                            width):
             best = None                  # a corner in the air: the "tip" is not the tape's end
         off = [k for k, h in enumerate(hits) if h is not None and PROBE_CONFIRM_M < h[0] <= REFIT_TOUCH_MAX_M]
@@ -423,12 +418,10 @@ def _refit_and_probe(needle: _Needle, capture: Capture, est, k: int, hit, beyond
     the touch, so this mostly checks the needle's way there), none within PROBE_PAST_CLEAR_M
     of the point ``beyond`` [m] past it, and tape at both its corners (within PROBE_CORNER_M):
     the tip is then within about ``beyond`` of the end. Else None."""
-    from tapecell.cell.probe import PROBE_PAST_CLEAR_M, refit_acceptable, tape_points
-    from tapecell.estimator.touch import refit
+    from tapecell.cell.probe import PROBE_PAST_CLEAR_M, refit_hypothesis, tape_points
 
-    shape = est if k == 0 else est.alternatives[k - 1]
-    refitted = refit(capture, shape.angles, hit[1], 2 * needle.params.inset)
-    if not refit_acceptable(refitted, est):
+    refitted = refit_hypothesis(capture, est, k, hit[1], 2 * needle.params.inset)
+    if refitted is None:
         return None
     tip, R = refitted.tip_position, refitted.tip_rotation
     at_tip = needle.distance("refitted tip", tape_points(tip, R, capture.tape.width, needle.params.inset)["tip"], R)
@@ -437,16 +430,11 @@ def _refit_and_probe(needle: _Needle, capture: Capture, est, k: int, hit, beyond
     past = needle.distance("beyond the refitted tip", tip + beyond * R[:, 0], R)
     if past is not None and past <= PROBE_PAST_CLEAR_M:
         return None             # tape near the point past the end (a touch on the tape's body)
-    if not needle.corners_confirm(tip, R, capture.tape.width):
+    if not needle.corners_on_tape(tip, R, capture.tape.width):
         return None
     reason = (f"refitted through the needle's touch {1e3 * hit[0]:.1f} mm from {what}: tape at its tip and "
               f"corners, none {1e3 * beyond:.0f} mm past it")
     return dataclasses.replace(refitted, verdict=Verdict.OK, verdict_reason=reason)
-
-
-def report_steps(found: list[float]) -> list[float]:
-    """The steps past the end [m] that were tape, as reported [mm]."""
-    return [round(d * 1e3, 1) for d in found]
 
 
 PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, PAST_END_MAX_M)
@@ -471,25 +459,24 @@ def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None
 
     tip, R = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)
     found: list[float] = []
+    ended = False         # tape at the tip, an end found within the steps, its corners tape
     with _Needle(cell, sim_arm, probes, notes) as needle:
         hit = needle.touch("tip", tape_points(tip, R, width, needle.params.inset)["tip"], R)
-        at_tip = hit is not None and hit[0] <= PROBE_CONFIRM_M
-        if at_tip:
+        if hit is not None and hit[0] <= PROBE_CONFIRM_M:
             for d in PAST_END_STEPS_M:
                 h = needle.touch(f"past the end +{d * 1e3:.0f} mm", tip + d * R[:, 0], R)
                 if h is None or h[0] > PROBE_CONFIRM_M:
                     break
                 found.append(d)
-            if len(found) < len(PAST_END_STEPS_M) and not needle.corners_confirm(
-                    tip + (found[-1] if found else 0.0) * R[:, 0], R, width):
-                return est, report_steps(found)     # a corner in the air: not the end
+            ended = (len(found) < len(PAST_END_STEPS_M)
+                     and needle.corners_on_tape(tip + (found[-1] if found else 0.0) * R[:, 0], R, width))
         elif hit is not None and hit[0] <= REFIT_TOUCH_MAX_M and capture is not None:
             refitted = _refit_and_probe(needle, capture, est, 0, hit, PAST_END_STEPS_M[0], "the tip")
             if refitted is not None:
                 return refitted, []
-    report = report_steps(found)
-    if not at_tip or len(found) == len(PAST_END_STEPS_M):
-        return est, report          # no tape at the tip, or tape as far as the needle looked
+    report = [round(d * 1e3, 1) for d in found]
+    if not ended:
+        return est, report          # no tape at the tip, tape as far as the needle looked, or a corner in the air
     if not found:
         # Tape at the tip and none 3 mm past it: the model's end is the tape's; what the
         # views show past it is tape beside the end (a curl of its corner), not beyond.

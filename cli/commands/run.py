@@ -144,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
                                  "hand)")
             est = (measure_end_with_needle if end_measurable(est) else settle_with_needle)(cfg, capture, est, story,
                                                                                            args.yes)
+            story.add("estimate", None, (capture, est), "after probing")
             result["verdict"] = est.verdict.value
             print(f"estimate after probing: {est.verdict_reason}")
 
@@ -221,19 +222,15 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
     near = [j for j, d in enumerate(distances) if d <= REFIT_TOUCH_MAX_M]
     if k is None and len(near) == 1 and distances[near[0]] > PROBE_CONFIRM_M:
         # One hypothesis' end a few mm from the touch, none on it: refit it through the touch.
-        j = near[0]
-        settled = _refit_through(capture, est, j, touched, f"hypothesis {j}'s tip")
+        settled = _refit_through(capture, est, near[0], touched, f"hypothesis {near[0]}'s tip")
         if settled is not None:
-            story.add("estimate", None, (capture, settled), "after probing")
             return settled
     if k is None:
         raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm confirms none of the "
                          f"{len(tips)} hypotheses of the tape's end (their tips are {listed} mm away; one must be "
                          f"within {PROBE_CONFIRM_M * 1e3:.0f} mm, the only one so near and clearly the closest); nothing moved")
     reason = f"hypothesis {k} confirmed by the needle ({1e3 * distances[k]:.1f} mm from its tip)"
-    settled = adopt(est, k, capture.tape, reason)
-    story.add("estimate", None, (capture, settled), "after probing")
-    return settled
+    return adopt(est, k, capture.tape, reason)
 
 
 def _touch_end(cfg, yes: bool, what: str, then: str, prompt=None, log=print) -> np.ndarray:
@@ -282,7 +279,6 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
         # Off the end's line but a few mm from the tip: refit the shape through the touch.
         settled = _refit_through(capture, est, 0, touched, "the tip", past_end=PAST_END in est.verdict_reason)
         if settled is not None:
-            story.add("estimate", None, (capture, settled), "after probing")
             return settled
     if end is None:
         raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm is not on the estimated "
@@ -291,9 +287,7 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
                          "nothing moved")
     moved = float(np.linalg.norm(end - tip))
     reason = f"the tape's end measured by the needle: {moved * 1e3:.1f} mm past the model's end"
-    settled = dataclasses.replace(est, tip_position=end, verdict=Verdict.OK, verdict_reason=reason)
-    story.add("estimate", None, (capture, settled), "after probing")
-    return settled
+    return dataclasses.replace(est, tip_position=end, verdict=Verdict.OK, verdict_reason=reason)
 
 
 def _refit_through(capture, est, k: int, touched: np.ndarray, what: str, past_end: bool = False):
@@ -307,13 +301,12 @@ def _refit_through(capture, est, k: int, touched: np.ndarray, what: str, past_en
     along the tape by more than PROBE_CONFIRM_M; else None."""
     import dataclasses
 
-    from tapecell.cell.probe import PROBE_CONFIRM_M, ProbeParams, refit_acceptable
+    from tapecell.cell.probe import PROBE_CONFIRM_M, ProbeParams, refit_hypothesis
     from tapecell.estimator import Verdict
-    from tapecell.estimator.touch import refit
 
     shape = est if k == 0 else est.alternatives[k - 1]
-    refitted = refit(capture, shape.angles, touched, ProbeParams().inset)
-    if not refit_acceptable(refitted, est):
+    refitted = refit_hypothesis(capture, est, k, touched, ProbeParams().inset)
+    if refitted is None:
         return None
     if float(np.linalg.norm(refitted.tip_position - touched)) > PROBE_CONFIRM_M:
         return None
