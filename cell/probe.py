@@ -148,7 +148,7 @@ REFIT_TOUCH_MAX_M = 0.012
 this [m], refits the shape through the touch (:func:`tapecell.estimator.touch.refit`): the
 views leave such an end a few millimetres off (its depth where one camera sees it, an end
 hooked over); the refitted tip is then probed afresh."""
-REFIT_COST_RATIO = 2.0
+REFIT_COST_RATIO = 2.5
 """A refit whose silhouette cost (eq. 11) exceeds this multiple of the best hypothesis'
 (the estimate's or an alternative's) explains the views too badly to be probed."""
 PROBE_PAST_CLEAR_M = 0.012
@@ -172,16 +172,20 @@ def refit_acceptable(refitted: Any, estimate: Any) -> bool:
     return refitted.verdict in (Verdict.OK, Verdict.HIDDEN)
 
 
-def refit_hypothesis(capture: Any, estimate: Any, k: int, touched: np.ndarray, depth: float) -> Any:
+def refit_hypothesis(capture: Any, estimate: Any, k: int, touched: np.ndarray, depth: float,
+                     angles: np.ndarray | None = None) -> Any:
     """Hypothesis ``k`` of ``estimate`` (0: itself, else its alternative k - 1) refitted to
     ``capture``'s views with its end through the needle's touch ``touched`` (3,) [m] (within
     ``depth`` [m] of the end: :func:`tapecell.estimator.touch.refit`), when the refit may be
-    confirmed (:func:`refit_acceptable`); else None. What confirms it is the caller's: the
-    simulated needle probes it, the real cell's operator put the needle on the end."""
+    confirmed (:func:`refit_acceptable`); else None. ``angles``: start from these instead
+    (an earlier refit of the hypothesis), judged against ``estimate`` all the same. What
+    confirms it is the caller's: the simulated needle probes it, the real cell's operator
+    put the needle on the end."""
     from tapecell.estimator.touch import refit
 
-    shape = estimate if k == 0 else estimate.alternatives[k - 1]
-    refitted = refit(capture, shape.angles, touched, depth)
+    if angles is None:
+        angles = (estimate if k == 0 else estimate.alternatives[k - 1]).angles
+    refitted = refit(capture, angles, touched, depth)
     return refitted if refit_acceptable(refitted, estimate) else None
 
 

@@ -397,12 +397,13 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                                                                            width):
             best = None                  # a corner in the air: the "tip" is not the tape's end
         off = [k for k, h in enumerate(hits) if h is not None and PROBE_CONFIRM_M < h[0] <= REFIT_TOUCH_MAX_M]
-        if best is None and not near and len(off) == 1 and capture is not None:
-            # One tip touched tape a few mm off, none on it: refit that shape through the touch.
-            k = off[0]
-            refitted = _refit_and_probe(needle, capture, est, k, hits[k], PROBE_BEYOND_M, f"hypothesis {k}'s tip")
-            if refitted is not None:
-                return refitted, report
+        if best is None and not near and capture is not None:
+            # Tips touched tape a few mm off, none on it: refit those shapes through their
+            # touches, the closest touch first; the first refit the needle confirms is kept.
+            for k in sorted(off, key=lambda j: hits[j][0]):
+                refitted = _refit_and_probe(needle, capture, est, k, hits[k], PROBE_BEYOND_M, f"hypothesis {k}'s tip")
+                if refitted is not None:
+                    return refitted, report
     if best is None:
         return est, report
     return adopt(est, best, est_spec(cell), reason), report
@@ -417,24 +418,39 @@ def _refit_and_probe(needle: _Needle, capture: Capture, est, k: int, hit, beyond
     and the needle finds tape at the refit's tip (within PROBE_CONFIRM_M; it passes through
     the touch, so this mostly checks the needle's way there), none within PROBE_PAST_CLEAR_M
     of the point ``beyond`` [m] past it, and tape at both its corners (within PROBE_CORNER_M):
-    the tip is then within about ``beyond`` of the end. Else None."""
+    the tip is then within about ``beyond`` of the end. Where the point past the tip is tape
+    itself (within PROBE_CONFIRM_M: the tape goes on along the refit's end), the needle walks
+    on: the shape is refitted through that touch and probed the same way, at most
+    REFIT_WALK_STEPS refits in all. Else None."""
     from tapecell.cell.probe import PROBE_PAST_CLEAR_M, refit_hypothesis, tape_points
 
-    refitted = refit_hypothesis(capture, est, k, hit[1], 2 * needle.params.inset)
-    if refitted is None:
-        return None
-    tip, R = refitted.tip_position, refitted.tip_rotation
-    at_tip = needle.distance("refitted tip", tape_points(tip, R, capture.tape.width, needle.params.inset)["tip"], R)
-    if at_tip is None or at_tip > PROBE_CONFIRM_M:
-        return None
-    past = needle.distance("beyond the refitted tip", tip + beyond * R[:, 0], R)
-    if past is not None and past <= PROBE_PAST_CLEAR_M:
-        return None             # tape near the point past the end (a touch on the tape's body)
-    if not needle.corners_on_tape(tip, R, capture.tape.width):
-        return None
-    reason = (f"refitted through the needle's touch {1e3 * hit[0]:.1f} mm from {what}: tape at its tip and "
-              f"corners, none {1e3 * beyond:.0f} mm past it")
-    return dataclasses.replace(refitted, verdict=Verdict.OK, verdict_reason=reason)
+    angles, touched, walked = None, hit[1], 0
+    while True:
+        refitted = refit_hypothesis(capture, est, k, touched, 2 * needle.params.inset, angles)
+        if refitted is None:
+            return None
+        tip, R = refitted.tip_position, refitted.tip_rotation
+        at_tip = needle.distance("refitted tip", tape_points(tip, R, capture.tape.width, needle.params.inset)["tip"], R)
+        if at_tip is None or at_tip > PROBE_CONFIRM_M:
+            return None
+        past = needle.touch("beyond the refitted tip", tip + beyond * R[:, 0], R)
+        walked += 1
+        if past is not None and past[0] <= PROBE_CONFIRM_M and walked < REFIT_WALK_STEPS:
+            angles, touched = refitted.angles, past[1]   # tape goes on past the refit's end: walk on
+            continue
+        if past is not None and past[0] <= PROBE_PAST_CLEAR_M:
+            return None             # tape near the point past the end (a touch on the tape's body)
+        if not needle.corners_on_tape(tip, R, capture.tape.width):
+            return None
+        steps = f" (after {walked} refits along the tape)" if walked > 1 else ""
+        reason = (f"refitted through the needle's touch {1e3 * hit[0]:.1f} mm from {what}{steps}: tape at its tip "
+                  f"and corners, none {1e3 * beyond:.0f} mm past it")
+        return dataclasses.replace(refitted, verdict=Verdict.OK, verdict_reason=reason)
+
+
+REFIT_WALK_STEPS = 3
+"""At most this many refits, each through the needle's touch past the previous refit's end
+(:func:`_refit_and_probe`), before a tape that goes on past them all is refused."""
 
 
 PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, PAST_END_MAX_M)
