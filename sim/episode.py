@@ -361,11 +361,13 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
         # A hypothesis whose "tip" lies on the tape's body touches tape too: the needle
         # also goes a little beyond each touched one's end, where the true end finds nothing.
         near = [k for k, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
+        short = []                       # touched tips with tape on their trunk's line beyond them
         for k in near:
             tip, R, _ = hypotheses[k]
             past = needle.distance(f"beyond hypothesis {k}", tip + PROBE_BEYOND_M * R[:, 0], R)
             if past is not None and past <= PROBE_CONFIRM_M:
                 found[k] = None          # tape beyond its end: not the end
+                short.append(k)
         report = [None if d is None else round(1e3 * d, 2) for d in found]
         on_tape = [k for k, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
         best, reason, cornered = confirmed(found), "", False
@@ -396,6 +398,19 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
         if best is not None and not cornered and not needle.corners_on_tape(hypotheses[best][0], hypotheses[best][1],
                                                                            width):
             best = None                  # a corner in the air: the "tip" is not the tape's end
+        if best is None and short == near and len(short) == 1:
+            # The one tip touched is short: the tape goes on along its trunk (an end hidden
+            # from the cameras, hanging on past the model's): the needle walks on along it.
+            k = short[0]
+            tip, R, _ = hypotheses[k]
+            steps = [d for d in PAST_END_STEPS_M if d > PROBE_BEYOND_M]
+            walked, ended = _walk_past(needle, tip, R, width, steps, PROBE_BEYOND_M)
+            if ended:
+                nxt = next(d for d in steps if d > walked)
+                reason = (f"hypothesis {k}'s end measured by the needle: tape at its tip and {1e3 * walked:.0f} mm "
+                          f"past it along the tape, none at {1e3 * nxt:.0f} mm, tape at both corners there")
+                out = adopt(est, k, est_spec(cell), reason)
+                return dataclasses.replace(out, tip_position=tip + walked * R[:, 0]), report
         off = [k for k, h in enumerate(hits) if h is not None and PROBE_CONFIRM_M < h[0] <= REFIT_TOUCH_MAX_M]
         if best is None and not near and capture is not None:
             # Tips touched tape a few mm off, none on it: refit those shapes through their
@@ -453,6 +468,20 @@ REFIT_WALK_STEPS = 3
 (:func:`_refit_and_probe`), before a tape that goes on past them all is refused."""
 
 
+def _walk_past(needle: _Needle, tip: np.ndarray, R: np.ndarray, width: float, steps, start: float):
+    """The needle probes the points ``steps`` [m] past ``tip`` along the trunk ``R[:, 0]``
+    in order (tape known to go on to ``start`` [m] past it) until one finds no tape
+    (nothing within PROBE_CONFIRM_M). Returns (how far past the tip tape was last touched
+    [m], ended: an end found within the steps with tape at both its corners there)."""
+    last = start
+    for d in steps:
+        h = needle.touch(f"past the end +{d * 1e3:.0f} mm", tip + d * R[:, 0], R)
+        if h is None or h[0] > PROBE_CONFIRM_M:
+            return last, needle.corners_on_tape(tip + last * R[:, 0], R, width)
+        last = d
+    return last, False
+
+
 PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, PAST_END_MAX_M)
 """Where the needle probes past a model's end that the views say is short [m, along its
 trunk]; it stops at the first step without tape."""
@@ -479,13 +508,8 @@ def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None
     with _Needle(cell, sim_arm, probes, notes) as needle:
         hit = needle.touch("tip", tape_points(tip, R, width, needle.params.inset)["tip"], R)
         if hit is not None and hit[0] <= PROBE_CONFIRM_M:
-            for d in PAST_END_STEPS_M:
-                h = needle.touch(f"past the end +{d * 1e3:.0f} mm", tip + d * R[:, 0], R)
-                if h is None or h[0] > PROBE_CONFIRM_M:
-                    break
-                found.append(d)
-            ended = (len(found) < len(PAST_END_STEPS_M)
-                     and needle.corners_on_tape(tip + (found[-1] if found else 0.0) * R[:, 0], R, width))
+            last, ended = _walk_past(needle, tip, R, width, PAST_END_STEPS_M, 0.0)
+            found = [d for d in PAST_END_STEPS_M if d <= last]
         elif hit is not None and hit[0] <= REFIT_TOUCH_MAX_M and capture is not None:
             refitted = _refit_and_probe(needle, capture, est, 0, hit, PAST_END_STEPS_M[0], "the tip")
             if refitted is not None:
