@@ -335,6 +335,40 @@ class _Needle:
                 None if d is None else round(1e3 * d, 2) for d in found)
         return corners_on_tape(found)
 
+    def end_frame(self, tip: np.ndarray, R: np.ndarray, width: float) -> np.ndarray | None:
+        """The frame of the end at ``tip``: ``R`` when both its corners are tape
+        (:meth:`corners_on_tape`); else the twist the needle finds (a hooked end seen along
+        its trunk leaves its twist tens of degrees off): ``R`` turned about its trunk by each
+        of TWIST_SEARCH_DEG in turn, the first whose corners are both touched gives the
+        lateral axis through the two touches (square to the trunk), kept when that frame's
+        corners are tape too. None when none is."""
+        from tapecell.cell.probe import PROBE_CORNER_M, tape_points
+
+        if self.corners_on_tape(tip, R, width):
+            return R
+        trunk = R[:, 0]
+        for deg in TWIST_SEARCH_DEG:
+            a = np.radians(deg)
+            turned = R @ np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+            points = tape_points(tip, turned, width, self.params.inset)
+            hits = [self.touch(f"corner {side} turned {deg:+.0f} deg", points[f"tip_{side}"], turned)
+                    for side in ("left", "right")]
+            if any(h is None or h[0] > PROBE_CORNER_M for h in hits):
+                continue
+            left = hits[0][1] - hits[1][1]
+            left = left - (left @ trunk) * trunk
+            if np.linalg.norm(left) < 0.5 * width:
+                continue
+            left /= np.linalg.norm(left)
+            measured = np.column_stack([trunk, left, np.cross(trunk, left)])
+            return measured if self.corners_on_tape(tip, measured, width) else None
+        return None
+
+
+TWIST_SEARCH_DEG = (30.0, -30.0, 60.0, -60.0)
+"""The turns about the trunk [deg] with which the needle looks for the corners of a confirmed
+end whose own corners are not both tape (:meth:`_Needle.end_frame`)."""
+
 
 def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None, capture: Capture | None = None,
                        notes: dict | None = None):
@@ -395,22 +429,24 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                               f"only touched tip of {len(on_tape)} whose corners are tape")
         elif best is not None:
             reason = f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip)"
-        if best is not None and not cornered and not needle.corners_on_tape(hypotheses[best][0], hypotheses[best][1],
-                                                                           width):
-            best = None                  # a corner in the air: the "tip" is not the tape's end
+        frame = None
+        if best is not None and not cornered:
+            frame = needle.end_frame(hypotheses[best][0], hypotheses[best][1], width)
+            if frame is None:
+                best = None              # a corner in the air at every twist: the "tip" is not the tape's end
         if best is None and short == near and len(short) == 1:
             # The one tip touched is short: the tape goes on along its trunk (an end hidden
             # from the cameras, hanging on past the model's): the needle walks on along it.
             k = short[0]
             tip, R, _ = hypotheses[k]
             steps = [d for d in PAST_END_STEPS_M if d > PROBE_BEYOND_M]
-            walked, ended = _walk_past(needle, tip, R, width, steps, PROBE_BEYOND_M)
-            if ended:
+            walked, end = _walk_past(needle, tip, R, width, steps, PROBE_BEYOND_M)
+            if end is not None:
                 nxt = next(d for d in steps if d > walked)
                 reason = (f"hypothesis {k}'s end measured by the needle: tape at its tip and {1e3 * walked:.0f} mm "
                           f"past it along the tape, none at {1e3 * nxt:.0f} mm, tape at both corners there")
                 out = adopt(est, k, est_spec(cell), reason)
-                return dataclasses.replace(out, tip_position=tip + walked * R[:, 0]), report
+                return dataclasses.replace(out, tip_position=tip + walked * R[:, 0], tip_rotation=end), report
         off = [k for k, h in enumerate(hits) if h is not None and PROBE_CONFIRM_M < h[0] <= REFIT_TOUCH_MAX_M]
         if best is None and not near and capture is not None:
             # Tips touched tape a few mm off, none on it: refit those shapes through their
@@ -421,7 +457,10 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                     return refitted, report
     if best is None:
         return est, report
-    return adopt(est, best, est_spec(cell), reason), report
+    out = adopt(est, best, est_spec(cell), reason)
+    if frame is not None and frame is not hypotheses[best][1]:
+        out = dataclasses.replace(out, tip_rotation=frame, verdict_reason=reason + "; its twist measured at the corners")
+    return out, report
 
 
 def _refit_and_probe(needle: _Needle, capture: Capture, est, k: int, hit, beyond: float, what: str):
@@ -455,12 +494,14 @@ def _refit_and_probe(needle: _Needle, capture: Capture, est, k: int, hit, beyond
             continue
         if past is not None and past[0] <= PROBE_PAST_CLEAR_M:
             return None             # tape near the point past the end (a touch on the tape's body)
-        if not needle.corners_on_tape(tip, R, capture.tape.width):
+        frame = needle.end_frame(tip, R, capture.tape.width)
+        if frame is None:
             return None
         steps = f" (after {walked} refits along the tape)" if walked > 1 else ""
+        twist = "" if frame is R else "; its twist measured at the corners"
         reason = (f"refitted through the needle's touch {1e3 * hit[0]:.1f} mm from {what}{steps}: tape at its tip "
-                  f"and corners, none {1e3 * beyond:.0f} mm past it")
-        return dataclasses.replace(refitted, verdict=Verdict.OK, verdict_reason=reason)
+                  f"and corners, none {1e3 * beyond:.0f} mm past it{twist}")
+        return dataclasses.replace(refitted, tip_rotation=frame, verdict=Verdict.OK, verdict_reason=reason)
 
 
 REFIT_WALK_STEPS = 3
@@ -472,14 +513,15 @@ def _walk_past(needle: _Needle, tip: np.ndarray, R: np.ndarray, width: float, st
     """The needle probes the points ``steps`` [m] past ``tip`` along the trunk ``R[:, 0]``
     in order (tape known to go on to ``start`` [m] past it) until one finds no tape
     (nothing within PROBE_CONFIRM_M). Returns (how far past the tip tape was last touched
-    [m], ended: an end found within the steps with tape at both its corners there)."""
+    [m], the end's frame when an end was found within the steps and its corners are tape
+    there (:meth:`_Needle.end_frame`), else None)."""
     last = start
     for d in steps:
         h = needle.touch(f"past the end +{d * 1e3:.0f} mm", tip + d * R[:, 0], R)
         if h is None or h[0] > PROBE_CONFIRM_M:
-            return last, needle.corners_on_tape(tip + last * R[:, 0], R, width)
+            return last, needle.end_frame(tip + last * R[:, 0], R, width)
         last = d
-    return last, False
+    return last, None
 
 
 PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, PAST_END_MAX_M)
@@ -504,12 +546,13 @@ def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None
 
     tip, R = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)
     found: list[float] = []
-    ended = False         # tape at the tip, an end found within the steps, its corners tape
+    ended, end = False, None   # tape at the tip, an end found within the steps, its corners tape; its frame
     with _Needle(cell, sim_arm, probes, notes) as needle:
         hit = needle.touch("tip", tape_points(tip, R, width, needle.params.inset)["tip"], R)
         if hit is not None and hit[0] <= PROBE_CONFIRM_M:
-            last, ended = _walk_past(needle, tip, R, width, PAST_END_STEPS_M, 0.0)
+            last, end = _walk_past(needle, tip, R, width, PAST_END_STEPS_M, 0.0)
             found = [d for d in PAST_END_STEPS_M if d <= last]
+            ended = end is not None
         elif hit is not None and hit[0] <= REFIT_TOUCH_MAX_M and capture is not None:
             refitted = _refit_and_probe(needle, capture, est, 0, hit, PAST_END_STEPS_M[0], "the tip")
             if refitted is not None:
@@ -517,15 +560,16 @@ def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None
     report = [round(d * 1e3, 1) for d in found]
     if not ended:
         return est, report          # no tape at the tip, tape as far as the needle looked, or a corner in the air
+    twist = "" if end is R else "; its twist measured at the corners"
     if not found:
         # Tape at the tip and none 3 mm past it: the model's end is the tape's; what the
         # views show past it is tape beside the end (a curl of its corner), not beyond.
         reason = (f"the needle touched tape at the tip and none {PAST_END_STEPS_M[0] * 1e3:.0f} mm past it: "
-                  "the model's end is the tape's")
-        return dataclasses.replace(est, verdict=Verdict.OK, verdict_reason=reason), report
+                  f"the model's end is the tape's{twist}")
+        return dataclasses.replace(est, tip_rotation=end, verdict=Verdict.OK, verdict_reason=reason), report
     reason = (f"the tape's end measured by the needle: tape {found[-1] * 1e3:.0f} mm past the model's end, "
-              f"none at {PAST_END_STEPS_M[len(found)] * 1e3:.0f} mm")
-    return dataclasses.replace(est, tip_position=tip + found[-1] * R[:, 0], verdict=Verdict.OK,
+              f"none at {PAST_END_STEPS_M[len(found)] * 1e3:.0f} mm{twist}")
+    return dataclasses.replace(est, tip_position=tip + found[-1] * R[:, 0], tip_rotation=end, verdict=Verdict.OK,
                                verdict_reason=reason), report
 
 
