@@ -13,6 +13,7 @@ from tapecell.estimator.metrics import errors
 from tapecell.estimator.occlusion import hidden, penetration
 from tapecell.estimator.scene import Box
 from tapecell.estimator.synthetic import SyntheticOptions, make_capture
+from tapecell.estimator.config import DEFAULT as DEFAULT_CONFIG
 from tapecell.estimator.verdict import POOR_OFFSET_PX, boundary_offsets, judge
 
 
@@ -373,6 +374,39 @@ def test_sliver_views_on_simulated_captures():
     bad = load_capture(DATA / "sim-shell-c2-550008")
     est = estimate(bad)
     assert est.verdict is not Verdict.OK, f"ok at {_tip_mm(bad, est):.1f} mm"
+
+
+def test_a_view_of_the_tape_edge_on_is_fitted_not_cropped():
+    """A simulated episode's capture (seed 832078, 2 cameras) whose first camera sees the
+    upper tape edge-on: a line one pixel wide above the base, with too few pixels per row
+    for the crop's speckle rule, which cropped it off, and the fit went 43 mm astray
+    (poor_fit). The view's crop holds the whole line, and the fit is within 1 mm; that view
+    sees the end only as a sliver, so the verdict is "hidden" (the needle confirms it)."""
+    from tapecell.estimator import load_capture
+    from tapecell.estimator.views import prepare
+
+    capture = load_capture(DATA / "sim-chain-c2-832078")
+    view = capture.views[0]
+    ys, xs = np.nonzero(view.mask)
+    field = prepare(view, capture.scene)
+    h, w = field.planes[0].shape
+    assert field.y0 <= ys.min() and field.y0 + h >= ys.max() + 1
+    assert field.x0 <= xs.min() and field.x0 + w >= xs.max() + 1
+    est = estimate(capture)
+    assert _tip_mm(capture, est) < 1.0
+    assert est.verdict in (Verdict.OK, Verdict.HIDDEN), est.verdict_reason
+
+
+def test_the_crop_keeps_thin_lines_and_drops_speckles():
+    """views._first_box: a one-pixel line on a blob is kept in the crop; speckles (smaller
+    than speckle_px) far away do not stretch it."""
+    from tapecell.estimator.views import _first_box
+
+    m = np.zeros((200, 300), bool)
+    m[150:180, 100:140] = True            # the tape's base, seen face-on
+    m[40:150, 120] = True                 # the tape above it, edge-on: one pixel per row
+    m[10, 280] = m[190, 5] = m[100, 250] = True
+    assert _first_box(m, DEFAULT_CONFIG) == (100, 40, 140, 180)
 
 
 def test_an_end_where_the_tape_leaves_the_image_is_not_located():
