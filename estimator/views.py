@@ -80,17 +80,16 @@ def fill_pinholes(m: np.ndarray, cfg: FitConfig = DEFAULT) -> np.ndarray:
     return out
 
 
-def _first_box(mask: np.ndarray, cfg: FitConfig) -> tuple[int, int, int, int]:
-    """Bounding box (x0, y0, x1, y1) of the tape in a raw mask: :func:`_tape_box`, grown to
-    every region of at least cfg.speckle_px pixels where the mask holds tape outside it. A
-    thin line (tape seen edge-on, one pixel per row) has too few pixels per row for
-    :func:`_tape_box`, which would crop it off."""
+def _crop_box(mask: np.ndarray, cfg: FitConfig) -> tuple[int, int, int, int]:
+    """Bounding box (x0, y0, x1, y1) of the tape in a mask: :func:`_tape_box`, and where at
+    least cfg.speckle_px tape pixels lie outside it, grown to every region of that many
+    pixels. A thin line (the tape seen edge-on, one pixel per row) has too few pixels per
+    row for :func:`_tape_box`, which alone would crop it off."""
     box = _tape_box(mask)
     m = mask.view(np.uint8)
-    x, y, w, h = cv2.boundingRect(m)
-    if (x, y, x + w, y + h) == box:
-        return box
     x0, y0, x1, y1 = box
+    if cv2.countNonZero(m) - cv2.countNonZero(m[y0:y1, x0:x1]) < cfg.speckle_px:
+        return box
     count, _, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
     for sx, sy, sw, sh, area in stats[1:]:
         if area >= cfg.speckle_px:
@@ -114,15 +113,14 @@ def prepare(view: View, boxes: tuple = (), cfg: FitConfig = DEFAULT) -> Field:
     """``view`` ready for the boundary fit: its cleaned mask's signed distance field, outline
     and silhouette target in a region of interest (see :class:`Field`)."""
     cam = view.camera
-    bx0, by0, bx1, by1 = _first_box(view.mask, cfg)
+    bx0, by0, bx1, by1 = _crop_box(view.mask, cfg)
     margin = cfg.occluded_margin_px if view.ignore is not None else cfg.margin_px
     x0, y0 = max(0, bx0 - margin), max(0, by0 - margin)
     x1, y1 = min(cam.width, bx1 + margin), min(cam.height, by1 + margin)
     roi = clean_mask(view.mask[y0:y1, x0:x1], cfg)
     # Speckles of a noisy mask stretch the first box over most of the image; without them
     # the box is the tape's, and every step below works on far fewer pixels.
-    cx, cy, cw, ch = cv2.boundingRect(roi)     # the speckles are gone: every tape pixel counts
-    cx0, cy0, cx1, cy1 = cx, cy, cx + cw, cy + ch
+    cx0, cy0, cx1, cy1 = _crop_box(roi, cfg)
     cx0, cy0 = max(0, cx0 - margin), max(0, cy0 - margin)
     cx1, cy1 = min(x1 - x0, cx1 + margin), min(y1 - y0, cy1 + margin)
     roi = fill_pinholes(np.ascontiguousarray(roi[cy0:cy1, cx0:cx1]), cfg)

@@ -398,15 +398,15 @@ def test_a_view_of_the_tape_edge_on_is_fitted_not_cropped():
 
 
 def test_the_crop_keeps_thin_lines_and_drops_speckles():
-    """views._first_box: a one-pixel line on a blob is kept in the crop; speckles (smaller
+    """views._crop_box: a one-pixel line on a blob is kept in the crop; speckles (smaller
     than speckle_px) far away do not stretch it."""
-    from tapecell.estimator.views import _first_box
+    from tapecell.estimator.views import _crop_box
 
     m = np.zeros((200, 300), bool)
     m[150:180, 100:140] = True            # the tape's base, seen face-on
     m[40:150, 120] = True                 # the tape above it, edge-on: one pixel per row
     m[10, 280] = m[190, 5] = m[100, 250] = True
-    assert _first_box(m, DEFAULT_CONFIG) == (100, 40, 140, 180)
+    assert _crop_box(m, DEFAULT_CONFIG) == (100, 40, 140, 180)
 
 
 def test_an_end_where_the_tape_leaves_the_image_is_not_located():
