@@ -16,7 +16,8 @@ and check physically that both pads closed on the tape and that the tip followed
 gripper through the lift. Only an "ok" estimate is acted on; a "hidden" or "ambiguous" one,
 or a "poor_fit" for its end alone, is first settled with the needle where it can be (it
 touches the hypotheses' tips, their corners and past them, measures an end along the
-tape, or refits the shape through a touch a few mm off), else refused. Prints one
+tape, walks on along a tape that goes on past a tip, refits the shape through a touch a
+few mm off, or finds an end's twist at its corners), else refused. Prints one
 tape-episode/1 JSON line ("outcome": grasped, refused or failed); exit status 1 when the
 episode did not grasp."""
 
