@@ -455,12 +455,44 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                 refitted = _refit_and_probe(needle, capture, est, k, hits[k], PROBE_BEYOND_M, f"hypothesis {k}'s tip")
                 if refitted is not None:
                     return refitted, report
+        if best is None:
+            # Nothing above found the end: trace the tape from each hypothesis' body in turn.
+            for k in range(len(hypotheses)):
+                traced = _traced(needle, est, k, capture, width)
+                if traced is not None:
+                    return traced, report
     if best is None:
         return est, report
     out = adopt(est, best, est_spec(cell), reason)
     if frame is not None and frame is not hypotheses[best][1]:
         out = dataclasses.replace(out, tip_rotation=frame, verdict_reason=reason + "; its twist measured at the corners")
     return out, report
+
+
+def _traced(needle: _Needle, est, k: int, capture: Capture | None, width: float):
+    """Hypothesis ``k`` of ``est`` (0: itself, else its alternative k - 1) with its end where
+    the needle's :func:`_trace` from its centre line found it, verdict "ok", when the views
+    agree: the shape refitted through that end may be confirmed
+    (:func:`tapecell.cell.probe.refit_hypothesis`: it explains them about as well as the
+    best hypothesis, and as a whole, wrong at most at its end: a trace that stopped on the
+    tape's body 29 mm from the end left a view unexplained) and ends within PROBE_CONFIRM_M
+    of it. The refit is the shape acted on, with the traced end and the frame its corners
+    gave. None otherwise."""
+    from tapecell.cell.probe import refit_hypothesis
+
+    if capture is None:
+        return None
+    shape = est if k == 0 else est.alternatives[k - 1]
+    out = _trace(needle, shape.angles, capture.tape, width)
+    if out is None:
+        return None
+    end, frame, walked = out
+    refitted = refit_hypothesis(capture, est, k, end, 2 * needle.params.inset)
+    if refitted is None or np.linalg.norm(refitted.tip_position - end) > PROBE_CONFIRM_M:
+        return None
+    reason = (f"the needle traced the tape from hypothesis {k}'s centre line {1e3 * walked:.0f} mm to its end, tape at "
+              f"both corners there; the shape refitted through it explains the views")
+    return dataclasses.replace(refitted, tip_position=end, tip_rotation=frame, verdict=Verdict.OK, verdict_reason=reason)
 
 
 def _refit_and_probe(needle: _Needle, capture: Capture, est, k: int, hit, beyond: float, what: str):
@@ -524,6 +556,75 @@ def _walk_past(needle: _Needle, tip: np.ndarray, R: np.ndarray, width: float, st
     return last, None
 
 
+TRACE_STEP_M = 0.005
+"""The needle's step along the tape when it traces it (:func:`_trace`) [m]."""
+TRACE_BENDS_DEG = (0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0)
+"""The bends about the tape's lateral axis [deg] the trace tries, in order, for its next step."""
+TRACE_MAX_STEPS = 10
+"""At most this many steps [TRACE_STEP_M each] of a trace."""
+TRACE_BACK_M = (0.010, 0.020)
+"""Where a trace starts: a point of the estimated centre line this far back from its tip [m],
+the first the needle finds tape at."""
+
+
+def _trace(needle: _Needle, angles: np.ndarray, spec, width: float):
+    """Trace the tape with the needle, from a point of the centre line of the plate chain
+    ``angles`` (of the tape model ``spec``) TRACE_BACK_M back
+    from its end (tape must be touched there, within PROBE_CONFIRM_M) towards its end: each
+    step TRACE_STEP_M along the trunk bent about the lateral axis by TRACE_BENDS_DEG (tape
+    bends out of its plane; a hooked end curls), the first bend that touches tape within
+    PROBE_CONFIRM_M taken, the trunk then along the last step; where no bend finds tape, a
+    half step more is tried and the end is the last point touched. Returns (the end, its
+    frame (:meth:`_Needle.end_frame`: its corners tape), how far traced [m]) or None (no
+    tape where the trace starts, tape beyond TRACE_MAX_STEPS, or a corner in the air)."""
+    shape = forward_kinematics(spec, angles)
+    R = shape.frames[-1].copy()
+    start = None
+    for back in TRACE_BACK_M:
+        target = shape.nodes[-1] - back * R[:, 0]
+        hit = needle.touch(f"trace start {1e3 * back:.0f} mm back", target, R)
+        if hit is not None and hit[0] <= PROBE_CONFIRM_M:
+            start = hit[1]
+            break
+    if start is None:
+        return None
+    p, walked = start, 0.0
+
+    def bent(R, deg):
+        a = np.radians(deg)
+        t = np.cos(a) * R[:, 0] + np.sin(a) * R[:, 2]
+        n = -np.sin(a) * R[:, 0] + np.cos(a) * R[:, 2]
+        return np.column_stack([t, R[:, 1], n])
+
+    def along(R, t):
+        t = t / np.linalg.norm(t)
+        lat = R[:, 1] - (R[:, 1] @ t) * t
+        lat /= np.linalg.norm(lat)
+        return np.column_stack([t, lat, np.cross(t, lat)])
+
+    for step in range(TRACE_MAX_STEPS + 1):
+        nxt = None
+        for deg in TRACE_BENDS_DEG:
+            Rb = bent(R, deg)
+            hit = needle.touch(f"trace step {step + 1} bend {deg:+.0f} deg", p + TRACE_STEP_M * Rb[:, 0], Rb)
+            if hit is not None and hit[0] <= PROBE_CONFIRM_M and np.linalg.norm(hit[1] - p) > 0.5 * TRACE_STEP_M:
+                nxt = hit[1]
+                break
+        if nxt is None:
+            half = needle.touch("trace half step", p + 0.5 * TRACE_STEP_M * R[:, 0], R)
+            if half is not None and half[0] <= PROBE_CONFIRM_M and (half[1] - p) @ R[:, 0] > 0:
+                walked += float(np.linalg.norm(half[1] - p))
+                p = half[1]
+            frame = needle.end_frame(p, R, width)
+            return None if frame is None else (p, frame, walked)
+        if step == TRACE_MAX_STEPS:
+            return None             # tape on beyond the longest trace
+        R = along(R, nxt - p)
+        walked += float(np.linalg.norm(nxt - p))
+        p = nxt
+    return None
+
+
 PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, PAST_END_MAX_M)
 """Where the needle probes past a model's end that the views say is short [m, along its
 trunk]; it stops at the first step without tape."""
@@ -557,6 +658,11 @@ def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None
             refitted = _refit_and_probe(needle, capture, est, 0, hit, PAST_END_STEPS_M[0], "the tip")
             if refitted is not None:
                 return refitted, []
+        if not ended:
+            # Nothing above found the end: trace the tape from the estimate's body.
+            traced = _traced(needle, est, 0, capture, width)
+            if traced is not None:
+                return traced, [round(d * 1e3, 1) for d in found]
     report = [round(d * 1e3, 1) for d in found]
     if not ended:
         return est, report          # no tape at the tip, tape as far as the needle looked, or a corner in the air
