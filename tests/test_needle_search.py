@@ -1,0 +1,97 @@
+"""The simulated needle's searches (sim/episode.py) against an analytic tape, with a needle
+that touches where a line along the probe's approach meets the tape: the trace along a
+hooked end, the walk past a tip whose tape goes on, the twist found at the corners."""
+from __future__ import annotations
+
+import numpy as np
+
+from tapecell.cell.probe import ProbeParams
+from tapecell.estimator import TapeSpec
+from tapecell.sim.episode import _Needle, _trace, _walk_past
+
+WIDTH = 0.03
+RADIUS = 0.01
+
+
+def hooked_tape(straight: float = 0.10, curl_deg: float = 90.0, step: float = 0.0004):
+    """Centre line points and frames (trunk, left, normal) of a tape standing up along +z,
+    face towards +x, then curled towards +x about its left axis (+y) with RADIUS."""
+    pts, frames = [], []
+    for z in np.arange(0.0, straight, step):
+        pts.append([0.0, 0.0, z])
+        frames.append(np.column_stack([[0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0]]))
+    for a in np.arange(0.0, np.radians(curl_deg) + 1e-9, step / RADIUS):
+        trunk = np.array([np.sin(a), 0.0, np.cos(a)])
+        normal = np.array([np.cos(a), 0.0, -np.sin(a)])
+        pts.append([RADIUS * (1 - np.cos(a)), 0.0, straight + RADIUS * np.sin(a)])
+        frames.append(np.column_stack([trunk, [0, 1.0, 0], normal]))
+    return np.array(pts), np.array(frames)
+
+
+class LineNeedle(_Needle):
+    """A needle whose probe touches the tape surface point nearest to its approach line
+    (within 0.4 mm of it), the one nearest the aimed point along it (within the standoff)."""
+
+    def __init__(self, centre: np.ndarray, frames: np.ndarray):
+        self.params, self.probes, self.notes = ProbeParams(), None, None
+        across = np.linspace(-WIDTH / 2, WIDTH / 2, 61)
+        self.surface = (centre[:, None, :] + across[None, :, None] * frames[:, None, :, 1]).reshape(-1, 3)
+        self.touches = 0
+
+    def touch(self, label, target, R):
+        self.touches += 1
+        n = R[:, 2] / np.linalg.norm(R[:, 2])
+        d = self.surface - target
+        along = d @ n
+        perp = np.linalg.norm(d - along[:, None] * n, axis=1)
+        ok = (perp < 0.0004) & (np.abs(along) < self.params.standoff)
+        if not ok.any():
+            return None
+        k = np.flatnonzero(ok)[np.argmin(np.abs(along[ok]))]
+        return float(np.linalg.norm(self.surface[k] - target)), self.surface[k].copy()
+
+
+def test_the_trace_follows_a_hooked_end_past_the_model():
+    """A 5-plate model standing straight 100 mm up; the tape curls over a quarter turn past
+    it. The trace from 10 mm back from the model's end follows the curl to the tape's end
+    (within a step) and finds the end's frame turned with it."""
+    centre, frames = hooked_tape()
+    needle = LineNeedle(centre, frames)
+    spec = TapeSpec(np.full(5, 0.02), WIDTH, np.zeros(3), frames[0])
+    out = _trace(needle, np.zeros((5, 3)), spec, WIDTH)
+    assert out is not None
+    end, frame, walked = out
+    assert np.linalg.norm(end - centre[-1]) < 0.005
+    assert frame[:, 0] @ frames[-1][:, 0] > np.cos(np.radians(35))    # the trunk turned with the curl
+    assert walked > 0.015
+
+
+def test_the_trace_refuses_where_no_tape_is_at_its_start():
+    centre, frames = hooked_tape()
+    needle = LineNeedle(centre, frames)
+    away = frames[0].copy()
+    spec = TapeSpec(np.full(5, 0.02), WIDTH, np.array([0.05, 0.0, 0.0]), away)   # 50 mm beside the tape
+    assert _trace(needle, np.zeros((5, 3)), spec, WIDTH) is None
+
+
+def test_the_walk_past_a_tip_stops_at_the_end():
+    """A straight tape 108 mm long; a tip estimated at 100 mm: the walk finds tape 6 mm past
+    it and none at 9 mm, and the end's corners are tape."""
+    centre, frames = hooked_tape(straight=0.108, curl_deg=0.0)
+    needle = LineNeedle(centre, frames)
+    last, end = _walk_past(needle, np.array([0.0, 0.0, 0.100]), frames[0], WIDTH, (0.003, 0.006, 0.009, 0.012), 0.0)
+    assert last == 0.006 and end is not None
+
+
+def test_the_corners_find_a_twist_the_estimate_missed():
+    """The end's frame turned 40 deg about its trunk: its corners are in the air; the frame
+    the corners find has its lateral axis within 10 deg of the tape's."""
+    centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
+    needle = LineNeedle(centre, frames)
+    a = np.radians(40.0)
+    turned = frames[-1] @ np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    tip = centre[-1]
+    assert not needle.corners_on_tape(tip, turned, WIDTH)
+    frame = needle.end_frame(tip, turned, WIDTH)
+    assert frame is not None
+    assert abs(frame[:, 1] @ frames[-1][:, 1]) > np.cos(np.radians(10))
