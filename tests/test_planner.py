@@ -429,8 +429,9 @@ def test_the_open_fingers_keep_a_margin_from_the_tape_on_the_approach(monkeypatc
     import tapecell.cell.planner as planner
 
     tip, nodes = tape(np.zeros(15))
-    # A sheet 30 mm around the tip (every tilt and pitch of the jaw meets it).
-    a, b = np.meshgrid(np.linspace(-0.03, 0.03, 25), np.linspace(-0.03, 0.03, 25))
+    # A sheet 30 mm either side of the tip, 70 mm back along the trunk (every tilt and
+    # pitch of the jaw, at every inset, meets it).
+    a, b = np.meshgrid(np.linspace(-0.07, 0.03, 41), np.linspace(-0.03, 0.03, 25))
     w = tip.rotation[:, 1]
 
     def sheet(offset):
