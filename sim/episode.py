@@ -341,7 +341,7 @@ class _Needle:
         its trunk leaves its twist tens of degrees off): ``R`` turned about its trunk by each
         of TWIST_SEARCH_DEG in turn, the first whose corners are both touched gives the
         lateral axis through the two touches (square to the trunk), kept when that frame's
-        corners are tape too. None when none is."""
+        corners are tape too (else the next turn is tried). None when none is."""
         from tapecell.cell.probe import PROBE_CORNER_M, tape_points
 
         if self.corners_on_tape(tip, R, width):
@@ -361,7 +361,8 @@ class _Needle:
                 continue
             left /= np.linalg.norm(left)
             measured = np.column_stack([trunk, left, np.cross(trunk, left)])
-            return measured if self.corners_on_tape(tip, measured, width) else None
+            if self.corners_on_tape(tip, measured, width):
+                return measured
         return None
 
 
@@ -377,10 +378,15 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     Returns (the estimate to act on, with verdict "ok" when exactly one hypothesis was
     confirmed, else unchanged; per hypothesis the distance [mm] from the aimed point to
     the touched one, None where nothing was touched). A confirmed tip is kept only when both
-    its corners are tape too (:func:`tapecell.cell.probe.corners_on_tape`). Where none is
-    confirmed and none touched within PROBE_CONFIRM_M, but exactly one hypothesis' tip
-    touched tape a few millimetres off (within REFIT_TOUCH_MAX_M), and ``capture`` is given,
-    that shape is refitted through the touch and probed again (:func:`_refit_and_probe`).
+    its corners are tape too (:func:`tapecell.cell.probe.corners_on_tape`), at its own twist
+    or one the corners find (:meth:`_Needle.end_frame`). Where none is confirmed:
+    - the one touched tip with tape on its trunk's line beyond it is walked past
+      (:func:`_walk_past`) to the end;
+    - else, with none touched within PROBE_CONFIRM_M and ``capture`` given, every tip
+      touched a few millimetres off (within REFIT_TOUCH_MAX_M) is refitted through its
+      touch and probed again, the closest first (:func:`_refit_and_probe`);
+    - else, with at most one tip on the tape, the tape is traced from every hypothesis' body
+      (:func:`_traced`), kept where the ends found agree.
     The gripper is remounted and opened afterwards. ``probes``, ``notes``: see
     :class:`_Needle`."""
     from tapecell.cell.probe import REFIT_TOUCH_MAX_M, adopt, confirmed, tape_points
@@ -446,6 +452,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                 reason = (f"hypothesis {k}'s end measured by the needle: tape at its tip and {1e3 * walked:.0f} mm "
                           f"past it along the tape, none at {1e3 * nxt:.0f} mm, tape at both corners there")
                 out = adopt(est, k, est_spec(cell), reason)
+                report[k] = round(1e3 * hits[k][0], 2)
                 return dataclasses.replace(out, tip_position=tip + walked * R[:, 0], tip_rotation=end), report
         off = [k for k, h in enumerate(hits) if h is not None and PROBE_CONFIRM_M < h[0] <= REFIT_TOUCH_MAX_M]
         if best is None and not near and capture is not None:
@@ -455,12 +462,16 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                 refitted = _refit_and_probe(needle, capture, est, k, hits[k], PROBE_BEYOND_M, f"hypothesis {k}'s tip")
                 if refitted is not None:
                     return refitted, report
-        if best is None:
-            # Nothing above found the end: trace the tape from each hypothesis' body in turn.
-            for k in range(len(hypotheses)):
-                traced = _traced(needle, est, k, capture, width)
-                if traced is not None:
-                    return traced, report
+        if best is None and len(on_tape) <= 1:
+            # Nothing above found the end: trace the tape from each hypothesis' body. Kept
+            # only where the ends traced agree (one end): a trace decides nothing between
+            # hypotheses the needle could not tell apart, and never where several tips lie
+            # on the tape (a fold's edge is tape as the true end is).
+            traced = [t for t in (_traced(needle, est, k, capture, width) for k in range(len(hypotheses)))
+                      if t is not None]
+            if traced and all(np.linalg.norm(t.tip_position - traced[0].tip_position) <= PROBE_CONFIRM_M
+                              for t in traced):
+                return traced[0], report
     if best is None:
         return est, report
     out = adopt(est, best, est_spec(cell), reason)
@@ -476,8 +487,9 @@ def _traced(needle: _Needle, est, k: int, capture: Capture | None, width: float)
     (:func:`tapecell.cell.probe.refit_hypothesis`: it explains them about as well as the
     best hypothesis, and as a whole, wrong at most at its end: a trace that stopped on the
     tape's body 29 mm from the end left a view unexplained) and ends within PROBE_CONFIRM_M
-    of it. The refit is the shape acted on, with the traced end and the frame its corners
-    gave. None otherwise."""
+    of it; the traced end lies within PAST_END_MAX_M of the hypothesis' own. The refit is
+    the shape acted on, with the traced end and the frame its corners gave. None
+    otherwise."""
     from tapecell.cell.probe import refit_hypothesis
 
     if capture is None:
@@ -487,6 +499,8 @@ def _traced(needle: _Needle, est, k: int, capture: Capture | None, width: float)
     if out is None:
         return None
     end, frame, walked = out
+    if np.linalg.norm(end - shape.tip_position) > PAST_END_MAX_M:
+        return None                 # farther from the hypothesis' end than any end measured
     refitted = refit_hypothesis(capture, est, k, end, 2 * needle.params.inset)
     if refitted is None or np.linalg.norm(refitted.tip_position - end) > PROBE_CONFIRM_M:
         return None
@@ -637,12 +651,15 @@ def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None
     the estimate's tip (it must be tape, within PROBE_CONFIRM_M), then points on the
     centre line PAST_END_STEPS_M beyond it, until one finds no tape there. Returns (the
     estimate with verdict "ok" and its tip moved to the last point that was tape, or kept
-    when the first step found none; unchanged when the tip is not tape or tape goes on
-    past the last step; the steps [mm] that were tape). The end kept must have tape at both
-    its corners (:func:`tapecell.cell.probe.corners_on_tape`). Where the tip's probe touched
-    tape a few millimetres off (within REFIT_TOUCH_MAX_M) and ``capture`` is given, the shape
-    is refitted through the touch and its new tip probed (:func:`_refit_and_probe`, nothing
-    PAST_END_STEPS_M[0] past it). ``probes``, ``notes``: see :class:`_Needle`."""
+    when the first step found none; the steps [mm] that were tape). The end kept must have
+    tape at both its corners, at its own twist or one they find (:meth:`_Needle.end_frame`).
+    Where the tip's probe touched tape a few millimetres off (within REFIT_TOUCH_MAX_M) and
+    ``capture`` is given, the shape is refitted through the touch and its new tip probed
+    (:func:`_refit_and_probe`, nothing PAST_END_STEPS_M[0] past it). Where none of this
+    found the end (no tape at the tip, tape past the last step, a corner in the air, or no
+    refit confirmed), the tape is traced from the estimate's body (:func:`_traced`, an end
+    within PAST_END_MAX_M of the model's); the estimate is unchanged where that fails too.
+    ``probes``, ``notes``: see :class:`_Needle`."""
     from tapecell.cell.probe import REFIT_TOUCH_MAX_M, tape_points
 
     tip, R = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)
