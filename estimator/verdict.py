@@ -18,7 +18,8 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   silhouette); the tape's continuation past the tip would be seen, or background is seen
   before the occluder; no observed tape leaves the image near the tip edge
   (``BORDER_CLEAR_PX``); at most ``LOCATE_UNEXPLAINED_PX`` of observed tape near the tip is
-  unexplained; and it does not see the end edge-on as a sliver (``THIN_END_PX``), unless
+  unexplained; it does not see the end end-on, along its trunk (``END_ON_DEG``); and it
+  does not see the end edge-on as a sliver (``THIN_END_PX``), unless
   the model explains that whole view (``SLIVER_STRAY_PX``) and another view locates the
   end without being a sliver. Fewer than two such views: ``hidden``.
 - Can the end's depth be told? The cameras that see it must look at it from directions at
@@ -115,6 +116,11 @@ the shape explains the views): a robot with a needle may measure where the end i
 END_UNEXPLAINED = "does not explain the free end"
 """The words of a ``poor_fit`` reason for a view whose free end the model does not explain
 (END_OFFSET_PX), which an episode's needle may settle."""
+END_ON_DEG = 15.0
+"""A view whose line of sight to the tip lies within this angle [deg] of the estimated end's
+trunk sees the end end-on and does not locate it: its depth along that line is left open,
+and a shape curled the other way can explain the view as well (a wrong "ok" 14.9 mm off in a
+simulated episode, its end 13 deg from the second camera's line of sight)."""
 MIN_TRUNK_PX = 3.0
 """The tape's last 10 mm must project at least this long [px] for the direction past the tip
 to be known (an end seen end-on: every unexplained region counts as past the end)."""
@@ -495,6 +501,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     # coincides with the model's was tried as locating the end: on fresh shell captures it
     # let through an "ok" 81 mm off.)
     candidates = [s_ and x <= LOCATE_UNEXPLAINED_PX and _clear_of_border(v, o, xy, edge)
+                  and not _end_on(v, tip_position, tip_rotation)
                   for s_, x, v, o, xy in zip(seen, extra, views, observed, origins)]
     thin = [c and _thin_at(o, xy, tip) for c, o, xy, tip in zip(candidates, observed, origins, tips)]
     locates = [c and not t for c, t in zip(candidates, thin)]
@@ -521,6 +528,14 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
         verdict, reason = Verdict.POOR_FIT, (f"view {k} {END_UNEXPLAINED}: mean boundary distance "
                                              f"{ends[k]:.1f} px around the tip > {END_OFFSET_PX:g} px")
     return Judgement(verdict, reason, sum(locates), offsets)
+
+
+def _end_on(view: View, tip_position: np.ndarray, tip_rotation: np.ndarray) -> bool:
+    """Does ``view`` see the estimated end along its trunk (within END_ON_DEG of its line of
+    sight)? Its silhouette then holds the end's depth along that line open."""
+    ray = np.asarray(tip_position, float) - view.camera.center
+    cos = abs(float(ray @ tip_rotation[:, 0])) / max(float(np.linalg.norm(ray)), 1e-12)
+    return cos > np.cos(np.radians(END_ON_DEG))
 
 
 def is_close_alternative(cost: float, best_cost: float) -> bool:

@@ -112,7 +112,8 @@ def test_compiled_occlusion_matches_reference():
 
 def test_curl_seen_from_one_direction_is_ambiguous():
     """Two cameras 20 mm apart at 600 mm see a curled tape from nearly one direction: the
-    silhouettes leave the tip's depth open, so the estimate is "ambiguous", never "ok"."""
+    silhouettes leave the tip's depth open, so the estimate is "ambiguous" or, where its end
+    points along the cameras' lines of sight (seen end-on, END_ON_DEG), "hidden"; never "ok"."""
     from tapecell.estimator import Camera, Capture, TapeSpec, forward_kinematics
     from tapecell.estimator.capture import Truth
     from tapecell.estimator.geometry import look_at
@@ -134,7 +135,7 @@ def test_curl_seen_from_one_direction_is_ambiguous():
         views.append(View(cam, render_view(cam, shape)))
     est = estimate(Capture(spec, views, Truth(np.arange(6) * 0.03, shape.nodes, shape.frames[-1])))
     # Either reason: the end's depth is open, or a distinct shape explains the views as well.
-    assert est.verdict is Verdict.AMBIGUOUS, est.verdict_reason
+    assert est.verdict in (Verdict.AMBIGUOUS, Verdict.HIDDEN), est.verdict_reason
 
 
 def test_unexplained_regions_near_the_tip():
