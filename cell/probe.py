@@ -176,6 +176,12 @@ def refit_acceptable(refitted: Any, estimate: Any) -> bool:
     return refitted.verdict in (Verdict.OK, Verdict.HIDDEN)
 
 
+def hypothesis(estimate: Any, k: int) -> Any:
+    """Hypothesis ``k`` of ``estimate`` (an ``estimator.Estimate``): 0 itself, else its
+    alternative k - 1; either has ``angles``, ``tip_position``, ``tip_rotation``, ``cost``."""
+    return estimate if k == 0 else estimate.alternatives[k - 1]
+
+
 def refit_hypothesis(capture: Any, estimate: Any, k: int, touched: np.ndarray, depth: float,
                      angles: np.ndarray | None = None) -> Any:
     """Hypothesis ``k`` of ``estimate`` (0: itself, else its alternative k - 1) refitted to
@@ -188,7 +194,7 @@ def refit_hypothesis(capture: Any, estimate: Any, k: int, touched: np.ndarray, d
     from tapecell.estimator.touch import refit
 
     if angles is None:
-        angles = (estimate if k == 0 else estimate.alternatives[k - 1]).angles
+        angles = hypothesis(estimate, k).angles
     refitted = refit(capture, angles, touched, depth)
     return refitted if refit_acceptable(refitted, estimate) else None
 

@@ -18,10 +18,11 @@ from typing import Any
 import numpy as np
 
 from tapecell.cell.probe import (PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable,
-                                 hypotheses_to_probe)
+                                 hypotheses_to_probe, hypothesis)
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
+from tapecell.estimator.geometry import rot_x, rot_y
 from tapecell.estimator.metrics import errors
 
 MIN_LIFT_M = 0.020
@@ -325,15 +326,22 @@ class _Needle:
 
     def corners_on_tape(self, tip: np.ndarray, R: np.ndarray, width: float) -> bool:
         """Are both corners of the end at ``tip`` (frame ``R``) tape
-        (:func:`tapecell.cell.probe.corners_on_tape` of their :meth:`distance`)?"""
-        from tapecell.cell.probe import corners_on_tape, tape_points
+        (:func:`tapecell.cell.probe.corners_on_tape` of their :meth:`corner_touches`)?"""
+        from tapecell.cell.probe import corners_on_tape
 
-        points = tape_points(tip, R, width, self.params.inset)
-        found = [self.distance(f"corner {side}", points[f"tip_{side}"], R) for side in ("left", "right")]
+        found = [None if h is None else h[0] for h in self.corner_touches(tip, R, width)]
         if self.notes is not None:
             self.notes.setdefault("probed_corners_mm", []).extend(
                 None if d is None else round(1e3 * d, 2) for d in found)
         return corners_on_tape(found)
+
+    def corner_touches(self, tip: np.ndarray, R: np.ndarray, width: float, turn: str = "") -> list:
+        """:meth:`touch` at the two corners (left, right) of the end at ``tip`` (frame ``R``);
+        ``turn``: added to the probes' labels."""
+        from tapecell.cell.probe import tape_points
+
+        points = tape_points(tip, R, width, self.params.inset)
+        return [self.touch(f"corner {side}{turn}", points[f"tip_{side}"], R) for side in ("left", "right")]
 
     def end_frame(self, tip: np.ndarray, R: np.ndarray, width: float) -> np.ndarray | None:
         """The frame of the end at ``tip``: ``R`` when both its corners are tape
@@ -342,28 +350,37 @@ class _Needle:
         of TWIST_SEARCH_DEG in turn, the first whose corners are both touched gives the
         lateral axis through the two touches (square to the trunk), kept when that frame's
         corners are tape too (else the next turn is tried). None when none is."""
-        from tapecell.cell.probe import PROBE_CORNER_M, tape_points
+        from tapecell.cell.probe import PROBE_CORNER_M
 
         if self.corners_on_tape(tip, R, width):
             return R
         trunk = R[:, 0]
         for deg in TWIST_SEARCH_DEG:
-            a = np.radians(deg)
-            turned = R @ np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
-            points = tape_points(tip, turned, width, self.params.inset)
-            hits = [self.touch(f"corner {side} turned {deg:+.0f} deg", points[f"tip_{side}"], turned)
-                    for side in ("left", "right")]
+            turned = R @ rot_x(np.radians(deg))
+            hits = self.corner_touches(tip, turned, width, f" turned {deg:+.0f} deg")
             if any(h is None or h[0] > PROBE_CORNER_M for h in hits):
                 continue
             left = hits[0][1] - hits[1][1]
-            left = left - (left @ trunk) * trunk
-            if np.linalg.norm(left) < 0.5 * width:
+            if np.linalg.norm(left - (left @ trunk) * trunk) < 0.5 * width:
                 continue
-            left /= np.linalg.norm(left)
-            measured = np.column_stack([trunk, left, np.cross(trunk, left)])
+            measured = _frame_along(trunk, left)
             if self.corners_on_tape(tip, measured, width):
                 return measured
         return None
+
+
+def _frame_along(trunk: np.ndarray, left: np.ndarray) -> np.ndarray:
+    """The tape frame (columns trunk, left, normal) with its trunk along ``trunk`` and its
+    left axis the part of ``left`` square to it."""
+    t = trunk / np.linalg.norm(trunk)
+    lat = left - (left @ t) * t
+    lat = lat / np.linalg.norm(lat)
+    return np.column_stack([t, lat, np.cross(t, lat)])
+
+
+def _twisted(frame: np.ndarray, R: np.ndarray) -> str:
+    """The words a reason gets where the corners gave the end a frame other than ``R``."""
+    return "" if frame is R else "; its twist measured at the corners"
 
 
 TWIST_SEARCH_DEG = (30.0, -30.0, 60.0, -60.0)
@@ -476,7 +493,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
         return est, report
     out = adopt(est, best, est_spec(cell), reason)
     if frame is not None and frame is not hypotheses[best][1]:
-        out = dataclasses.replace(out, tip_rotation=frame, verdict_reason=reason + "; its twist measured at the corners")
+        out = dataclasses.replace(out, tip_rotation=frame, verdict_reason=reason + _twisted(frame, hypotheses[best][1]))
     return out, report
 
 
@@ -494,7 +511,7 @@ def _traced(needle: _Needle, est, k: int, capture: Capture | None, width: float)
 
     if capture is None:
         return None
-    shape = est if k == 0 else est.alternatives[k - 1]
+    shape = hypothesis(est, k)
     out = _trace(needle, shape.angles, capture.tape, width)
     if out is None:
         return None
@@ -544,9 +561,8 @@ def _refit_and_probe(needle: _Needle, capture: Capture, est, k: int, hit, beyond
         if frame is None:
             return None
         steps = f" (after {walked} refits along the tape)" if walked > 1 else ""
-        twist = "" if frame is R else "; its twist measured at the corners"
         reason = (f"refitted through the needle's touch {1e3 * hit[0]:.1f} mm from {what}{steps}: tape at its tip "
-                  f"and corners, none {1e3 * beyond:.0f} mm past it{twist}")
+                  f"and corners, none {1e3 * beyond:.0f} mm past it{_twisted(frame, R)}")
         return dataclasses.replace(refitted, tip_rotation=frame, verdict=Verdict.OK, verdict_reason=reason)
 
 
@@ -604,22 +620,10 @@ def _trace(needle: _Needle, angles: np.ndarray, spec, width: float):
         return None
     p, walked = start, 0.0
 
-    def bent(R, deg):
-        a = np.radians(deg)
-        t = np.cos(a) * R[:, 0] + np.sin(a) * R[:, 2]
-        n = -np.sin(a) * R[:, 0] + np.cos(a) * R[:, 2]
-        return np.column_stack([t, R[:, 1], n])
-
-    def along(R, t):
-        t = t / np.linalg.norm(t)
-        lat = R[:, 1] - (R[:, 1] @ t) * t
-        lat /= np.linalg.norm(lat)
-        return np.column_stack([t, lat, np.cross(t, lat)])
-
     for step in range(TRACE_MAX_STEPS + 1):
         nxt = None
         for deg in TRACE_BENDS_DEG:
-            Rb = bent(R, deg)
+            Rb = R @ rot_y(-np.radians(deg))          # the trunk bent towards the normal by deg
             hit = needle.touch(f"trace step {step + 1} bend {deg:+.0f} deg", p + TRACE_STEP_M * Rb[:, 0], Rb)
             if hit is not None and hit[0] <= PROBE_CONFIRM_M and np.linalg.norm(hit[1] - p) > 0.5 * TRACE_STEP_M:
                 nxt = hit[1]
@@ -631,12 +635,10 @@ def _trace(needle: _Needle, angles: np.ndarray, spec, width: float):
                 p = half[1]
             frame = needle.end_frame(p, R, width)
             return None if frame is None else (p, frame, walked)
-        if step == TRACE_MAX_STEPS:
-            return None             # tape on beyond the longest trace
-        R = along(R, nxt - p)
+        R = _frame_along(nxt - p, R[:, 1])
         walked += float(np.linalg.norm(nxt - p))
         p = nxt
-    return None
+    return None                     # tape on beyond the longest trace
 
 
 PAST_END_STEPS_M = (0.003, 0.006, 0.009, 0.012, 0.016, 0.020, PAST_END_MAX_M)
@@ -675,15 +677,15 @@ def measure_end_by_probing(cell, sim_arm, est, width: float, probes: list | None
             refitted = _refit_and_probe(needle, capture, est, 0, hit, PAST_END_STEPS_M[0], "the tip")
             if refitted is not None:
                 return refitted, []
+        report = [round(d * 1e3, 1) for d in found]
         if not ended:
             # Nothing above found the end: trace the tape from the estimate's body.
             traced = _traced(needle, est, 0, capture, width)
             if traced is not None:
-                return traced, [round(d * 1e3, 1) for d in found]
-    report = [round(d * 1e3, 1) for d in found]
+                return traced, report
     if not ended:
         return est, report          # no tape at the tip, tape as far as the needle looked, or a corner in the air
-    twist = "" if end is R else "; its twist measured at the corners"
+    twist = _twisted(end, R)
     if not found:
         # Tape at the tip and none 3 mm past it: the model's end is the tape's; what the
         # views show past it is tape beside the end (a curl of its corner), not beyond.

@@ -301,10 +301,10 @@ def _refit_through(capture, est, k: int, touched: np.ndarray, what: str, past_en
     along the tape by more than PROBE_CONFIRM_M; else None."""
     import dataclasses
 
-    from tapecell.cell.probe import PROBE_CONFIRM_M, ProbeParams, refit_hypothesis
+    from tapecell.cell.probe import PROBE_CONFIRM_M, ProbeParams, hypothesis, refit_hypothesis
     from tapecell.estimator import Verdict
 
-    shape = est if k == 0 else est.alternatives[k - 1]
+    shape = hypothesis(est, k)
     refitted = refit_hypothesis(capture, est, k, touched, ProbeParams().inset)
     if refitted is None:
         return None
