@@ -261,6 +261,9 @@ class GraspPlan:
     lift_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
     shape: ToolShape | None = None
     approach_pitch_rad: float = 0.0
+    inset: float = 0.0
+    """The grasp point's distance in from the tip along the estimated end [m]: the cell
+    file's ``inset``, or further back (:data:`EXTRA_INSETS_M`) where no closer grasp passed."""
 
     def waypoint(self, name: str) -> Waypoint:
         for w in self.waypoints:
@@ -282,6 +285,7 @@ class GraspPlan:
             "approach_tilt_deg": float(np.degrees(self.approach_tilt_rad)),
             "approach_pitch_deg": float(np.degrees(self.approach_pitch_rad)),
             "flipped": self.flipped,
+            "inset_m": self.inset,
             "lift_direction": self.lift_direction.tolist(),
         }
 
@@ -348,12 +352,14 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
                 for tilt in tilts:
                     for flipped in (False, True):
                         try:
-                            return _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper,
+                            plan = _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper,
                                                  limits, ik, q_ref, q_start is not None, tape, pitch,
                                                  grasp_rotation=grasp_rotation, surface=surface, speeds=speeds,
                                                  precheck=primary > 0, solid=solid)
                         except PlanRefused as e:
                             refusals.append(e)
+                        else:
+                            return dataclasses.replace(plan, inset=float(inset))
     # The most telling refusal of the first set of variants (the fallbacks are for the odd
     # tip beside the part): a collision (the tip is near the part or the table) over an
     # unreachable pose over a limit (most straight approaches to a low tip start below the

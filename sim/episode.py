@@ -177,6 +177,11 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             return doc
         times["plan"] = time.perf_counter() - t0
         story.add("plan", float(cell.data.time), (plan, q_start, None))
+        # Where the jaw takes the tape: in from the tip [mm], and the approach variant.
+        doc["grasp"] = {"inset_mm": round(plan.inset * 1e3, 1),
+                        "tilt_deg": round(float(np.degrees(plan.approach_tilt_rad)), 1),
+                        "pitch_deg": round(float(np.degrees(plan.approach_pitch_rad)), 1),
+                        "flipped": plan.flipped}
 
         t0 = time.perf_counter()
         outcome = _execute_and_check(cell, sim_arm, plan, limits, motion)

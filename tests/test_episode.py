@@ -27,6 +27,7 @@ def test_one_episode_grasps_the_tape_and_records_every_step(tmp_path, capsys):
     assert doc["tip_error_mm"] < 3.0
     assert doc["pad_contacts"]["left"] > 0 and doc["pad_contacts"]["right"] > 0
     assert doc["lift_mm"] >= 20.0
+    assert doc["grasp"]["inset_mm"] == 8.0 and set(doc["grasp"]) == {"inset_mm", "tilt_deg", "pitch_deg", "flipped"}
     assert set(doc["time_s"]) == {"capture", "estimate", "plan", "execute"}
     assert doc["recording"] == "ep.rrd"
     rows = read_recording(rrd)
