@@ -442,3 +442,27 @@ def test_the_open_fingers_keep_a_margin_from_the_tape_on_the_approach(monkeypatc
     plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, tape_surface=sheet(0.0165))
     monkeypatch.setattr(planner, "APPROACH_TAPE_MARGIN_M", 0.0)        # without the margin: planned
     plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, tape_surface=sheet(0.018))
+
+
+def test_far_back_grasps_are_only_tried_across_the_tape(monkeypatch):
+    """Every variant the planner tries at a grasp point FAR_INSET_M or more in from the tip
+    comes across the tape (tilt 90-120 deg either way); closer in, every tilt is tried."""
+    from tapecell.cell import planner
+    from tapecell.cell.config import load_cell_config
+
+    cfg = load_cell_config()
+    tried = []
+
+    def refuse(tip, grasp_position, tape_base, tilt, *a, **k):
+        tried.append((float(np.linalg.norm(grasp_position - tip.position)), abs(float(tilt))))
+        raise PlanRefused("collision", "refused for the test")
+
+    monkeypatch.setattr(planner, "_plan_variant", refuse)
+    tip, nodes = tape(np.zeros((5, 3)))
+    with pytest.raises(PlanRefused):
+        plan_grasp(tip, PARAMS, GripperGeometry.from_config(cfg.tools.gripper), SafetyLimits.from_cell(cfg),
+                   tape_points=nodes)
+    far = [t for d, t in tried if d >= planner.FAR_INSET_M - 1e-9]
+    near = {round(np.degrees(t)) for d, t in tried if d < planner.FAR_INSET_M - 1e-9}
+    assert far and all(np.radians(90.0) - 1e-9 <= t <= np.radians(120.0) + 1e-9 for t in far)
+    assert {0, 60, 150, 180} <= near
