@@ -403,14 +403,16 @@ def _twisted(frame: np.ndarray, R: np.ndarray) -> str:
 
 
 TRUNK_CHECK_M = 0.012
-TRUNK_TOUCH_M = 0.005
+TRUNK_TOUCH_M = 0.007
 """Before the simulated cell acts on an end the needle confirmed (its tip and both corners
 tape), the needle touches the centre line TRUNK_CHECK_M [m] back from the tip along the end's
 trunk, where the pads will hold the tape (the grasp point is the cell file's ``inset``, 8
 mm, in from the tip; the pads reach 6 mm either side): it must be tape within TRUNK_TOUCH_M
-[m]. A tip and corners touched within 1.4-2.4 mm passed an end whose trunk was 38 deg off
-(838095, 3 cameras: the pads closed on air); there the check touches 8.4 mm off. In 70
-grasped episodes that probed (seeds of 830000-844000) it touched within 3.5 mm."""
+[m] (about a 30 deg bend off the trunk there). A tip and corners touched within 1.4-2.4 mm
+passed an end whose trunk was 38 deg off (838095, 3 cameras: the jaw closed on air); there
+the check touches 8.4 mm off. In 70 grasped probing episodes of 830000-844000 it touched
+within 3.5 mm; on fresh 848000 one grasp (848005, tip 3.0 mm off) touched 5.4 mm off, which 5
+mm refused."""
 
 TWIST_SEARCH_DEG = (30.0, -30.0, 60.0, -60.0)
 """The turns about the trunk [deg] with which the needle looks for the corners of a confirmed

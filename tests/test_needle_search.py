@@ -99,14 +99,14 @@ def test_the_corners_find_a_twist_the_estimate_missed():
 
 def test_the_trunk_check_refuses_an_end_bent_off_where_the_pads_would_hold_it():
     """A straight tape and its end's frame at the true tip, once right and once with its trunk
-    bent 35 deg out of the tape's plane: both have their tip and corners on the tape (within a
+    bent 40 deg out of the tape's plane: both have their tip and corners on the tape (within a
     few mm near the tip), but only the right one has tape TRUNK_CHECK_M back along its trunk,
     where the pads would hold it (838095: the pads closed on air)."""
     from tapecell.sim.episode import TRUNK_CHECK_M, TRUNK_TOUCH_M
 
     centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
     tip, right = centre[-1], frames[-1]
-    a = np.radians(35.0)
+    a = np.radians(40.0)
     bent = right @ np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
     needle = LineNeedle(centre, frames)
     assert needle.corners_on_tape(tip, right, WIDTH) and needle.corners_on_tape(tip, bent, WIDTH)
