@@ -143,6 +143,40 @@ def corners_on_tape(distances: Sequence[float | None]) -> bool:
     return all(d is not None and d <= PROBE_CORNER_M for d in distances)
 
 
+TRUNK_CHECK_M = 0.012
+TRUNK_TOUCH_M = 0.007
+"""Before a cell acts on an end the needle confirmed, the needle touches the tape's centre
+line TRUNK_CHECK_M [m] back from the tip along the end's trunk, where the pads will hold it
+(the grasp point is the cell file's ``inset``, 8 mm, in from the tip; the pads reach 6 mm
+either side): it must be tape within TRUNK_TOUCH_M [m] of the trunk (about a 30 deg bend off
+it there). In the simulated cell a tip and corners touched within 1.4-2.4 mm passed an end
+whose trunk was 38 deg off (838095, 3 cameras: the jaw closed on air); there the check
+touches 8.4 mm off. In 70 grasped probing episodes of 830000-844000 it touched within 3.5
+mm; on fresh 848000 one grasp (848005, tip 3.0 mm off) touched 5.4 mm off, which 5 mm
+refused. The simulated needle touches along the end's normal at that point
+(``sim.episode._Needle.trunk_on_tape``); on the real cell the operator puts the needle on the
+centre line there, and :func:`trunk_touch_problem` judges the touch."""
+
+
+def trunk_touch_problem(tip_position: np.ndarray, tip_rotation: np.ndarray, touched: np.ndarray) -> str | None:
+    """Why the operator's touch ``touched`` (3,) [m] on the tape's centre line, about
+    TRUNK_CHECK_M back from the end at ``tip_position`` (frame ``tip_rotation``: trunk, left,
+    normal), does not pass the trunk check: it must lie TRUNK_CHECK_M / 2 to 2 TRUNK_CHECK_M
+    back along the trunk and within TRUNK_TOUCH_M of the trunk's line. None when it passes."""
+    trunk = np.asarray(tip_rotation, float)[:, 0]
+    v = np.asarray(tip_position, float) - np.asarray(touched, float)
+    back = float(v @ trunk)
+    off = float(np.linalg.norm(v - back * trunk))
+    if not TRUNK_CHECK_M / 2 <= back <= 2 * TRUNK_CHECK_M:
+        return (f"the needle's touch on the centre line is {1e3 * back:.1f} mm back from the end along its trunk "
+                f"(it must be {500 * TRUNK_CHECK_M:.0f}-{2e3 * TRUNK_CHECK_M:.0f} mm back, where the pads will hold "
+                f"the tape)")
+    if off > TRUNK_TOUCH_M:
+        return (f"the tape {1e3 * back:.0f} mm back from the end is {1e3 * off:.1f} mm off the estimated end's trunk "
+                f"(> {1e3 * TRUNK_TOUCH_M:.0f} mm): it bends away from the estimate where the pads would hold it")
+    return None
+
+
 REFIT_TOUCH_MAX_M = 0.012
 """A needle sent to a tip that touched tape farther than PROBE_CONFIRM_M from it, but within
 this [m], refits the shape through the touch (:func:`tapecell.estimator.touch.refit`): the

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import (PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable,
-                                 hypotheses_to_probe, hypothesis)
+from tapecell.cell.probe import (PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, TRUNK_CHECK_M, clearly_closest,
+                                 end_measurable, hypotheses_to_probe, hypothesis)
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -344,7 +344,9 @@ class _Needle:
     def trunk_on_tape(self, tip: np.ndarray, R: np.ndarray) -> bool:
         """Is the tape where the grasp will hold it: the point TRUNK_CHECK_M back from the end at
         ``tip`` along its trunk (frame ``R``), on the centre line, touched within
-        TRUNK_TOUCH_M?"""
+        TRUNK_TOUCH_M (see :data:`tapecell.cell.probe.TRUNK_TOUCH_M`)?"""
+        from tapecell.cell.probe import TRUNK_TOUCH_M
+
         hit = self.touch("trunk", tip - TRUNK_CHECK_M * R[:, 0], R)
         if self.notes is not None:
             self.notes.setdefault("probed_trunk_mm", []).append(None if hit is None else round(1e3 * hit[0], 2))
@@ -401,18 +403,6 @@ def _twisted(frame: np.ndarray, R: np.ndarray) -> str:
     """The words a reason gets where the corners gave the end a frame other than ``R``."""
     return "" if frame is R else "; its twist measured at the corners"
 
-
-TRUNK_CHECK_M = 0.012
-TRUNK_TOUCH_M = 0.007
-"""Before the simulated cell acts on an end the needle confirmed (its tip and both corners
-tape), the needle touches the centre line TRUNK_CHECK_M [m] back from the tip along the end's
-trunk, where the pads will hold the tape (the grasp point is the cell file's ``inset``, 8
-mm, in from the tip; the pads reach 6 mm either side): it must be tape within TRUNK_TOUCH_M
-[m] (about a 30 deg bend off the trunk there). A tip and corners touched within 1.4-2.4 mm
-passed an end whose trunk was 38 deg off (838095, 3 cameras: the jaw closed on air); there
-the check touches 8.4 mm off. In 70 grasped probing episodes of 830000-844000 it touched
-within 3.5 mm; on fresh 848000 one grasp (848005, tip 3.0 mm off) touched 5.4 mm off, which 5
-mm refused."""
 
 TWIST_SEARCH_DEG = (30.0, -30.0, 60.0, -60.0)
 """The turns about the trunk [deg] with which the needle looks for the corners of a confirmed

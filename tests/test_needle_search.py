@@ -102,7 +102,7 @@ def test_the_trunk_check_refuses_an_end_bent_off_where_the_pads_would_hold_it():
     bent 40 deg out of the tape's plane: both have their tip and corners on the tape (within a
     few mm near the tip), but only the right one has tape TRUNK_CHECK_M back along its trunk,
     where the pads would hold it (838095: the pads closed on air)."""
-    from tapecell.sim.episode import TRUNK_CHECK_M, TRUNK_TOUCH_M
+    from tapecell.cell.probe import TRUNK_CHECK_M, TRUNK_TOUCH_M
 
     centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
     tip, right = centre[-1], frames[-1]

@@ -148,3 +148,17 @@ def test_after_inconclusive_probes_only_a_clearly_closest_touched_tip_is_kept():
     assert clearly_closest([0.0007, 0.00075]) is None
     assert clearly_closest([0.0050, 0.0090]) is None            # nothing within 4 mm
     assert clearly_closest([None, 0.0010]) == 1
+
+
+@pytest.mark.parametrize("back_mm, off_mm, passes", [(12.0, 0.0, True), (12.0, 6.5, True), (12.0, 8.0, False),
+                                                     (2.0, 0.0, False), (30.0, 0.0, False)])
+def test_the_trunk_touch_must_lie_on_the_ends_trunk_where_the_pads_hold_it(back_mm, off_mm, passes):
+    from tapecell.cell.probe import trunk_touch_problem
+
+    R = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])       # trunk -z, left +y, normal +x
+    tip = np.array([0.1, 0.5, 0.08])
+    touched = tip - 1e-3 * back_mm * R[:, 0] + 1e-3 * off_mm * R[:, 2]
+    problem = trunk_touch_problem(tip, R, touched)
+    assert (problem is None) == passes
+    if not passes:
+        assert ("back from the end" in problem) and (("off the estimated end's trunk" in problem) == (off_mm > 7))

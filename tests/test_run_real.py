@@ -265,9 +265,10 @@ def _ambiguous_with_alternative(monkeypatch, offset_m):
     return real_estimate
 
 
-def _guide_needle_to(robot, target, monkeypatch):
-    """Every prompt answers Enter after 'guiding' the arm so the needle tip is at
-    ``target`` (what an operator does in freedrive)."""
+def _guide_needle_to(robot, target, monkeypatch, behind=None):
+    """Every prompt answers Enter after 'guiding' the arm so the needle tip is at ``target``
+    (what an operator does in freedrive), or, asked for the centre line behind the end, at
+    ``behind`` (3,) [m]."""
     import numpy as np
 
     from tapecell.cell.kinematics import ik_nearest
@@ -281,11 +282,17 @@ def _guide_needle_to(robot, target, monkeypatch):
         if "needle" in prompt:
             world_from_needle = np.eye(4)
             world_from_needle[:3, :3] = np.diag([1.0, -1.0, -1.0])       # pointing down
-            world_from_needle[:3, 3] = target
+            world_from_needle[:3, 3] = behind if "centre line" in prompt and behind is not None else target
             robot.q = ik_nearest(world_from_needle @ invert(needle), robot.q)
         return ""
     monkeypatch.setattr("builtins.input", ask)
     return prompts
+
+
+def _behind(est, back_m: float = 0.012, off_m: float = 0.0):
+    """The point ``back_m`` behind ``est``'s tip along its trunk, ``off_m`` off it along the
+    tape's normal: where the operator touches the centre line for the trunk check."""
+    return est.tip_position - back_m * est.tip_rotation[:, 0] + off_m * est.tip_rotation[:, 2]
 
 
 def test_probe_settles_an_ambiguous_estimate_with_the_needle_then_grasps(real_like, monkeypatch, capsys):
@@ -301,8 +308,10 @@ def test_probe_settles_an_ambiguous_estimate_with_the_needle_then_grasps(real_li
     from tapecell.estimator.capture import load_cameras
     from tapecell.cli.commands.run import grab_capture
 
-    truth_tip = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images)).tip_position
-    prompts = _guide_needle_to(robot, truth_tip + [0.001, 0.0, 0.0], monkeypatch)   # 1 mm off hypothesis 0
+    truth = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images))
+    truth_tip = truth.tip_position
+    prompts = _guide_needle_to(robot, truth_tip + [0.001, 0.0, 0.0], monkeypatch,   # 1 mm off hypothesis 0
+                               _behind(truth))
     code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
                  "--execute", "--probe", "--yes"])
     out, err = capsys.readouterr()
@@ -312,6 +321,31 @@ def test_probe_settles_an_ambiguous_estimate_with_the_needle_then_grasps(real_li
     names = [c[0] for c in robot.log]
     assert names.index("teachMode") < names.index("endTeachMode") < names.index("moveJ")
     assert "started freedrive" not in err
+
+
+def test_probe_whose_trunk_touch_is_off_the_end_moves_nothing(real_like, monkeypatch, capsys):
+    """--execute --probe: the needle on the tape's end confirms hypothesis 0, but the tape 12
+    mm back from the end is 10 mm off that end's trunk (it bends away where the pads would
+    hold it): refused after freedrive, nothing moved."""
+    import numpy as np
+    from fakes import FakeRobot, install_fake_rtde
+
+    images, cameras = real_like
+    real_estimate = _ambiguous_with_alternative(monkeypatch, [0.0, 0.0, 0.02])
+    robot = FakeRobot(np.array(load_cell_config().arm.park_joints))
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    from tapecell.estimator.capture import load_cameras
+    from tapecell.cli.commands.run import grab_capture
+
+    truth = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images))
+    _guide_needle_to(robot, truth.tip_position, monkeypatch, _behind(truth, off_m=0.010))
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--probe", "--yes"])
+    out, err = capsys.readouterr()
+    assert code == 1 and "off the estimated end's trunk (> 7 mm)" in err.strip().splitlines()[-1]
+    assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
+    names = [c[0] for c in robot.log]
+    assert "teachMode" in names and "endTeachMode" in names
 
 
 def test_probe_that_confirms_no_hypothesis_moves_nothing(real_like, monkeypatch, capsys):
@@ -369,7 +403,7 @@ def test_probe_refits_a_hidden_end_through_the_touch_then_grasps(real_like, monk
     capture = grab_capture(load_cell_config(), load_cameras(cameras), images)
     true_tip, off_tip = real_estimate(capture).tip_position, hidden_and_off(capture).tip_position
     assert 0.005 < np.linalg.norm(off_tip - true_tip) < 0.010
-    _guide_needle_to(robot, true_tip, monkeypatch)
+    _guide_needle_to(robot, true_tip, monkeypatch, _behind(real_estimate(capture)))
     code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
                  "--execute", "--probe", "--yes"])
     out, err = capsys.readouterr()
@@ -424,7 +458,8 @@ def test_probe_measures_the_end_of_a_fit_that_shows_tape_past_it(real_like, monk
 
     est = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images))
     trunk, side = est.tip_rotation[:, 0], est.tip_rotation[:, 2]
-    _guide_needle_to(robot, est.tip_position + 1e-3 * (along_mm * trunk + side_mm * side), monkeypatch)
+    end = est.tip_position + 1e-3 * (along_mm * trunk + side_mm * side)
+    _guide_needle_to(robot, end, monkeypatch, end - 0.012 * trunk)
     code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
                  "--execute", "--probe", "--yes"])
     out, err = capsys.readouterr()

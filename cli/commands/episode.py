@@ -17,7 +17,8 @@ gripper through the lift. Only an "ok" estimate is acted on; a "hidden" or "ambi
 or a "poor_fit" for its end alone, is first settled with the needle where it can be (it
 touches the hypotheses' tips, their corners and past them, measures an end along the
 tape, walks on along a tape that goes on past a tip, refits the shape through a touch a
-few mm off, or finds an end's twist at its corners), else refused. Prints one
+few mm off, or finds an end's twist at its corners; before acting it checks that the tape
+lies on the end's trunk 12 mm back, where the pads will hold it), else refused. Prints one
 tape-episode/1 JSON line ("outcome": grasped, refused or failed); exit status 1 when the
 episode did not grasp."""
 

@@ -211,12 +211,13 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
     from tapecell.cell.probe import PROBE_CONFIRM_M, REFIT_TOUCH_MAX_M, adopt, confirmed
 
     tips = [est.tip_position] + [a.tip_position for a in est.alternatives]
-    touched = _touch_end(cfg, yes, f"the estimate is {est.verdict.value} ({len(tips)} hypotheses of the tape's end)",
-                         "then plan the grasp for the hypothesis the needle confirms, show it and ask again before "
-                         "moving", prompt, log)
+    touched, trunk_touch = _touch_end(cfg, yes,
+                                      f"the estimate is {est.verdict.value} ({len(tips)} hypotheses of the tape's end)",
+                                      "then plan the grasp for the hypothesis the needle confirms, show it and ask "
+                                      "again before moving", prompt, log)
     distances = [float(np.linalg.norm(touched - t)) for t in tips]
     story.add("probes", None, [{"label": f"hypothesis {k}", "aimed": t, "touched": touched, "t": None}
-                               for k, t in enumerate(tips)])
+                               for k, t in enumerate(tips)] + [_trunk_probe(est, trunk_touch)])
     k = confirmed(distances)
     listed = ", ".join(f"{1e3 * d:.1f}" for d in distances)
     near = [j for j, d in enumerate(distances) if d <= REFIT_TOUCH_MAX_M]
@@ -224,32 +225,60 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
         # One hypothesis' end a few mm from the touch, none on it: refit it through the touch.
         settled = _refit_through(capture, est, near[0], touched, f"hypothesis {near[0]}'s tip")
         if settled is not None:
-            return settled
+            return _trunk_checked(settled, trunk_touch)
     if k is None:
         raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm confirms none of the "
                          f"{len(tips)} hypotheses of the tape's end (their tips are {listed} mm away; one must be "
                          f"within {PROBE_CONFIRM_M * 1e3:.0f} mm, the only one so near and clearly the closest); nothing moved")
     reason = f"hypothesis {k} confirmed by the needle ({1e3 * distances[k]:.1f} mm from its tip)"
-    return adopt(est, k, capture.tape, reason)
+    return _trunk_checked(adopt(est, k, capture.tape, reason), trunk_touch)
 
 
-def _touch_end(cfg, yes: bool, what: str, then: str, prompt=None, log=print) -> np.ndarray:
+def _touch_end(cfg, yes: bool, what: str, then: str, prompt=None, log=print) -> tuple[np.ndarray, np.ndarray]:
     """After the operator's confirmation (``what`` the estimate is, ``then`` what follows):
-    freedrive, the operator guides the needle onto the middle of the tape's end and presses
-    Enter; returns the needle tip there (3,) [m]. The arm is connected for this only, and
-    freedrive ends on every path."""
-    from tapecell.cell.probe import guided_probe
+    freedrive, the operator guides the needle onto the middle of the tape's end, then onto its
+    centre line about TRUNK_CHECK_M back from the end (:data:`tapecell.cell.probe.TRUNK_CHECK_M`,
+    where the pads will hold it), pressing Enter at each; returns the needle tip at both (3,),
+    (3,) [m]. The arm is connected for this only, and freedrive ends on every path."""
+    from tapecell.cell.probe import TRUNK_CHECK_M, guided_probe
     from tapecell.cell.ur import URArm
 
+    back = f"centre line, about {TRUNK_CHECK_M * 1e3:.0f} mm back from its end"
     confirm_robot(cfg.robot.host, cfg.robot.port, [
         f"{what}: start freedrive (teach mode); the arm's brakes release and it follows your hand, making no "
         "motion of its own",
-        "record the needle tip when you press Enter with it on the middle of the tape's end; freedrive then ends",
+        f"record the needle tip when you press Enter with it on the middle of the tape's end, then on its {back}; "
+        "freedrive then ends",
         then], yes)
     arm = URArm.from_config(cfg, cfg.tools.needle.flange_from_tcp)
     with arm:
-        points = guided_probe(arm, cfg.tools.needle.flange_from_tcp, ["tip"], prompt, log)
-    return np.asarray(points[0].position, float)
+        points = {p.label: p.position for p in guided_probe(arm, cfg.tools.needle.flange_from_tcp,
+                                                            ["tip", back], prompt, log)}
+    missing = [label for label in ("tip", back) if label not in points]
+    if missing:
+        raise TaskFailed(f"the needle was not put on the tape's {' and '.join(missing)} (both are needed); "
+                         "nothing moved")
+    return np.asarray(points["tip"], float), np.asarray(points[back], float)
+
+
+def _trunk_probe(est, trunk_touch: np.ndarray) -> dict:
+    """The recording's entry of the touch on the centre line behind ``est``'s end."""
+    from tapecell.cell.probe import TRUNK_CHECK_M
+
+    aimed = np.asarray(est.tip_position, float) - TRUNK_CHECK_M * np.asarray(est.tip_rotation, float)[:, 0]
+    return {"label": "trunk", "aimed": aimed, "touched": trunk_touch, "t": None}
+
+
+def _trunk_checked(est, trunk_touch: np.ndarray):
+    """``est`` (settled by the needle) when the operator's touch on the centre line behind its
+    end passes the trunk check (:func:`tapecell.cell.probe.trunk_touch_problem`); else
+    :class:`TaskFailed` (nothing moved but by hand)."""
+    from tapecell.cell.probe import trunk_touch_problem
+
+    problem = trunk_touch_problem(est.tip_position, est.tip_rotation, trunk_touch)
+    if problem is not None:
+        raise TaskFailed(f"{problem}; nothing moved")
+    return est
 
 
 def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=print):
@@ -269,17 +298,18 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
     from tapecell.estimator import Verdict
     from tapecell.estimator.verdict import PAST_END
 
-    touched = _touch_end(cfg, yes, f"the estimate is {est.verdict.value} ({est.verdict_reason})",
-                         "then plan the grasp at the end the needle measured, show it and ask again before moving",
-                         prompt, log)
+    touched, trunk_touch = _touch_end(cfg, yes, f"the estimate is {est.verdict.value} ({est.verdict_reason})",
+                                      "then plan the grasp at the end the needle measured, show it and ask again "
+                                      "before moving", prompt, log)
     tip, trunk = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)[:, 0]
-    story.add("probes", None, [{"label": "end", "aimed": tip, "touched": touched, "t": None}])
+    story.add("probes", None, [{"label": "end", "aimed": tip, "touched": touched, "t": None},
+                               _trunk_probe(est, trunk_touch)])
     end = measured_end(tip, trunk, touched)
     if end is None and float(np.linalg.norm(touched - tip)) <= REFIT_TOUCH_MAX_M:
         # Off the end's line but a few mm from the tip: refit the shape through the touch.
         settled = _refit_through(capture, est, 0, touched, "the tip", past_end=PAST_END in est.verdict_reason)
         if settled is not None:
-            return settled
+            return _trunk_checked(settled, trunk_touch)
     if end is None:
         raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm is not on the estimated "
                          f"end's line (it must lie within {PROBE_CONFIRM_M * 1e3:.0f} mm of it, from "
@@ -287,7 +317,8 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
                          "nothing moved")
     moved = float(np.linalg.norm(end - tip))
     reason = f"the tape's end measured by the needle: {moved * 1e3:.1f} mm past the model's end"
-    return dataclasses.replace(est, tip_position=end, verdict=Verdict.OK, verdict_reason=reason)
+    return _trunk_checked(dataclasses.replace(est, tip_position=end, verdict=Verdict.OK, verdict_reason=reason),
+                          trunk_touch)
 
 
 def _refit_through(capture, est, k: int, touched: np.ndarray, what: str, past_end: bool = False):
