@@ -51,7 +51,7 @@ from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
 from .tape import forward_kinematics
-from .verdict import DISTINCT_TIP_M, FOLD_DEG, assess, is_close_alternative, mask_fault
+from .verdict import DISTINCT_TIP_M, END_FOLD_DEG, FOLD_DEG, assess, is_close_alternative, mask_fault
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -336,11 +336,13 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
                    trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)
     # A second, more thorough look (a larger global search on the widest grid, always)
-    # before answering, for an unsure estimate and for an "ok" fold (its alternatives, the
-    # shapes folded the other way, are weighed afresh). For a fold its answer stands; for an
+    # before answering, for an unsure estimate and for an "ok" fold, over the whole tape or
+    # at its end (its alternatives, the shapes folded the other way, are weighed afresh). For a fold its answer stands; for an
     # unsure one when it is "ok" (judged afresh) or explains the views better. The time of
     # both looks counts. What the looks compute alike (:class:`FirstStage`) is done once.
-    folded = verdict is Verdict.OK and float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
+    folded = verdict is Verdict.OK and (
+        float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
+        or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG)))
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN)
     if method == "default" and second_look and not thorough and (folded or unsure):
         # A fold that is "ok" gets a smaller thorough beam (FitConfig.fold_beam).

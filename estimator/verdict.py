@@ -77,6 +77,15 @@ back towards the body; an "ok" fit of a fold gets the estimator's thorough secon
 whose wider search finds the shapes folded the other way (alternatives): where a fold's
 end meets the body's outline, a notch in a silhouette is as well the fold's edge with the
 end over the body (a wrong "ok" 16 mm off in an episode)."""
+END_FOLD_DEG = 100.0
+"""... and so is an end whose tip frame turns by more than this [deg] from the plate two
+before the tape's last (a tight fold near the end, however the tape hangs from its base):
+a shape bending sideways at the end explains the views of a hairpin fold over the body
+with a "notch" of its own, and the first look's search may miss the hairpin (two wrong
+"ok" 20 and 23 mm off in episodes, 850037 and 832172, their ends turned 122 and 111 deg;
+the thorough look finds the hairpin in both). Measured from the tape's first plate
+instead, at 75 deg, the look doubled the median fit time: most tapes turn 90 deg where
+they hang over the part's edge."""
 BEYOND_M = (0.003, 0.006)
 """Distances [m] past the tip, along its trunk, where a view that locates the end must be
 able to see: where the tape's continuation would be hidden by a scene box, lie on ignored

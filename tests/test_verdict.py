@@ -399,6 +399,25 @@ def test_a_view_of_the_tape_edge_on_is_fitted_not_cropped():
     assert est.verdict in (Verdict.OK, Verdict.HIDDEN), est.verdict_reason
 
 
+def test_a_hairpin_fold_at_the_end_gets_the_thorough_look():
+    """A simulated episode's capture (seed 850037, 2 cameras): the tape's end folds back over
+    its body in a hairpin. The first look misses the hairpin and returns a shape bending
+    sideways at the end, 20 mm off, that it calls "ok"; its end turns more than END_FOLD_DEG
+    from the plate two before the last, so it gets the thorough look, which finds the
+    hairpin: not "ok", the true shape an alternative within 1 mm."""
+    from tapecell.estimator import forward_kinematics, load_capture
+    from tapecell.estimator.verdict import END_FOLD_DEG
+
+    capture = load_capture(DATA / "sim-chain-c2-850037")
+    first = estimate(capture, second_look=False)
+    assert first.verdict is Verdict.OK and _tip_mm(capture, first) > 10.0
+    frames = forward_kinematics(capture.tape, first.angles).frames
+    assert frames[-2][:, 0] @ first.tip_rotation[:, 0] < np.cos(np.radians(END_FOLD_DEG))
+    est = estimate(capture)
+    assert est.verdict is not Verdict.OK
+    assert min(np.linalg.norm(a.tip_position - capture.truth.tip_position) for a in est.alternatives) < 0.001
+
+
 def test_the_crop_keeps_thin_lines_and_drops_speckles():
     """views._crop_box: a one-pixel line on a blob is kept in the crop; speckles (smaller
     than speckle_px) far away do not stretch it."""
