@@ -51,7 +51,7 @@ from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
 from .tape import forward_kinematics
-from .verdict import DISTINCT_TIP_M, END_FOLD_DEG, FOLD_DEG, assess, is_close_alternative, mask_fault
+from .verdict import DISTINCT_TIP_M, END_FOLD_DEG, FOLD_DEG, assess, end_on, is_close_alternative, mask_fault
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -336,16 +336,20 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
                    trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)
     # A second, more thorough look (a larger global search on the widest grid, always)
-    # before answering, for an unsure estimate and for an "ok" fold, over the whole tape or
-    # at its end (its alternatives, the shapes folded the other way, are weighed afresh). For a fold its answer stands; for an
-    # unsure one when it is "ok" (judged afresh) or explains the views better. The time of
-    # both looks counts. What the looks compute alike (:class:`FirstStage`) is done once.
+    # before answering, for an unsure estimate, for an "ok" fold, over the whole tape or at
+    # its end (its alternatives, the shapes folded the other way, are weighed afresh), and
+    # for an "ok" end that a camera sees end-on (END_ON_DEG: its depth along that line is
+    # less constrained). For a fold or an end seen end-on its answer stands; for an unsure
+    # one when it is "ok" (judged afresh) or explains the views better. The time of both
+    # looks counts. What the looks compute alike (:class:`FirstStage`) is done once.
     folded = verdict is Verdict.OK and (
         float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
-        or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG)))
+        or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG))
+        or any(end_on(v, tip_position, tip_rotation) for v in capture.views))
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN)
     if method == "default" and second_look and not thorough and (folded or unsure):
-        # A fold that is "ok" gets a smaller thorough beam (FitConfig.fold_beam).
+        # A fold (or an end seen end-on) that is "ok" gets a smaller thorough beam
+        # (FitConfig.fold_beam).
         look = dataclasses.replace(config, thorough_beam=config.fold_beam) if folded else config
         second = _look(capture, method, None, True, look, True, first)
         return dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
