@@ -132,7 +132,8 @@ estimator's thorough second look before it answers, as a fold does (``end_on``; 
 "ok" 14.9 mm off in a simulated episode, 839020, its end 13 deg from the second camera's
 line of sight, was a search miss: the thorough look finds the true shape, 1.0 mm off).
 Such a view counted as not locating the end before: on fresh verdict benches that made
-1.5-3 % of the captures needless refusals (fits 0.2-3.6 mm off) and caught no wrong "ok"."""
+1.4-4.3 % of the captures needless refusals on three ranges (fits 0.2-3.6 mm off) and
+caught no wrong "ok"."""
 MIN_TRUNK_PX = 3.0
 """The tape's last 10 mm must project at least this long [px] for the direction past the tip
 to be known (an end seen end-on: every unexplained region counts as past the end)."""
