@@ -77,8 +77,8 @@ whose wider search finds the shapes folded the other way (alternatives): where a
 end meets the body's outline, a notch in a silhouette is as well the fold's edge with the
 end over the body (a wrong "ok" 16 mm off in an episode)."""
 END_FOLD_DEG = 100.0
-"""... and so is an end whose tip frame turns by more than this [deg] from the plate two
-before the tape's last (a tight fold near the end, however the tape hangs from its base):
+"""... and so is an end whose tip frame turns by more than this [deg] from the plate before
+the tape's last one (a tight fold at the end, however the tape hangs from its base):
 a shape bending sideways at the end explains the views of a hairpin fold over the body
 with a "notch" of its own, and the first look's search may miss the hairpin (two wrong
 "ok" 20 and 23 mm off in episodes, 850037 and 832172, their ends turned 122 and 111 deg;

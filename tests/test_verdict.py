@@ -403,7 +403,7 @@ def test_a_hairpin_fold_at_the_end_gets_the_thorough_look():
     """A simulated episode's capture (seed 850037, 2 cameras): the tape's end folds back over
     its body in a hairpin. The first look misses the hairpin and returns a shape bending
     sideways at the end, 20 mm off, that it calls "ok"; its end turns more than END_FOLD_DEG
-    from the plate two before the last, so it gets the thorough look, which finds the
+    from the plate before the last, so it gets the thorough look, which finds the
     hairpin: not "ok", the true shape an alternative within 1 mm."""
     from tapecell.estimator import forward_kinematics, load_capture
     from tapecell.estimator.verdict import END_FOLD_DEG
