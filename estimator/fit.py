@@ -339,18 +339,18 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     # before answering, for an unsure estimate, for an "ok" fold, over the whole tape or at
     # its end (its alternatives, the shapes folded the other way, are weighed afresh), and
     # for an "ok" end that a camera sees end-on (END_ON_DEG: its depth along that line is
-    # less constrained). For a fold or an end seen end-on its answer stands; for an unsure
-    # one when it is "ok" (judged afresh) or explains the views better. The time of both
+    # less constrained). For a fold its answer stands; for the others when it is "ok"
+    # (judged afresh) or explains the views better (:func:`_second_look`). The time of both
     # looks counts. What the looks compute alike (:class:`FirstStage`) is done once.
-    folded = verdict is Verdict.OK and (
-        float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
-        or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG))
-        or any(end_on(v, tip_position, tip_rotation) for v in capture.views))
+    ok = verdict is Verdict.OK
+    folded = ok and (float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
+                     or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG)))
+    seen_end_on = ok and any(end_on(v, tip_position, tip_rotation) for v in capture.views)
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN)
-    if method == "default" and second_look and not thorough and (folded or unsure):
-        # A fold (or an end seen end-on) that is "ok" gets a smaller thorough beam
+    if method == "default" and second_look and not thorough and (folded or seen_end_on or unsure):
+        # An "ok" estimate (a fold, an end seen end-on) gets a smaller thorough beam
         # (FitConfig.fold_beam).
-        look = dataclasses.replace(config, thorough_beam=config.fold_beam) if folded else config
+        look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok else config
         second = _look(capture, method, None, True, look, True, first)
         return dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
     return est

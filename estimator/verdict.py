@@ -128,7 +128,7 @@ END_ON_DEG = 15.0
 """A view whose line of sight to the tip lies within this angle [deg] of the estimated end's
 trunk sees the end end-on: its depth along that line is less constrained, and a shape
 curled another way may explain the view as well. An "ok" estimate with such a view gets the
-estimator's thorough second look before it answers, as a fold does (``end_on``; a wrong
+estimator's thorough second look before it answers (``end_on``; a wrong
 "ok" 14.9 mm off in a simulated episode, 839020, its end 13 deg from the second camera's
 line of sight, was a search miss: the thorough look finds the true shape, 1.0 mm off).
 Such a view counted as not locating the end before: on fresh verdict benches that made

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import (PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, TRUNK_CHECK_M, clearly_closest,
-                                 end_measurable, hypotheses_to_probe, hypothesis)
+from tapecell.cell.probe import (PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable,
+                                 hypotheses_to_probe, hypothesis)
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -345,7 +345,7 @@ class _Needle:
         """Is the tape where the grasp will hold it: the point TRUNK_CHECK_M back from the end at
         ``tip`` along its trunk (frame ``R``), on the centre line, touched within
         TRUNK_TOUCH_M (see :data:`tapecell.cell.probe.TRUNK_TOUCH_M`)?"""
-        from tapecell.cell.probe import TRUNK_TOUCH_M
+        from tapecell.cell.probe import TRUNK_CHECK_M, TRUNK_TOUCH_M
 
         hit = self.touch("trunk", tip - TRUNK_CHECK_M * R[:, 0], R)
         if self.notes is not None:
@@ -360,21 +360,21 @@ class _Needle:
         points = tape_points(tip, R, width, self.params.inset)
         return [self.touch(f"corner {side}{turn}", points[f"tip_{side}"], R) for side in ("left", "right")]
 
-    def end_frame(self, tip: np.ndarray, R: np.ndarray, width: float, check_trunk: bool = True) -> np.ndarray | None:
+    def end_frame(self, tip: np.ndarray, R: np.ndarray, width: float) -> np.ndarray | None:
         """The frame of the end at ``tip``: ``R`` when both its corners are tape
         (:meth:`corners_on_tape`); else the twist the needle finds (a hooked end seen along
         its trunk leaves its twist tens of degrees off): ``R`` turned about its trunk by each
         of TWIST_SEARCH_DEG in turn, the first whose corners are both touched gives the
         lateral axis through the two touches (square to the trunk), kept when that frame's
-        corners are tape too (else the next turn is tried). None when none is, and, with
-        ``check_trunk``, None when the frame found fails the trunk check (:meth:`trunk_on_tape`: the
-        tape leaves the end's trunk where the pads would hold it; the twist does not change
-        that). Off for an end traced over more than TRUNK_CHECK_M (:func:`_trace`): its steps
-        touched the tape behind it, curled or not."""
+        corners are tape too (else the next turn is tried). None when none is, and None when the
+        frame found fails the trunk check (:meth:`trunk_on_tape`: the tape leaves the end's
+        trunk where the pads would hold it; the twist does not change that), a traced end's
+        too (its frame is the trace's last 5 mm step; a tape curled tighter behind it would
+        leave the jaw's straight inset as well)."""
         from tapecell.cell.probe import PROBE_CORNER_M
 
         if self.corners_on_tape(tip, R, width):
-            return R if not check_trunk or self.trunk_on_tape(tip, R) else None
+            return R if self.trunk_on_tape(tip, R) else None
         trunk = R[:, 0]
         for deg in TWIST_SEARCH_DEG:
             turned = R @ rot_x(np.radians(deg))
@@ -386,7 +386,7 @@ class _Needle:
                 continue
             measured = _frame_along(trunk, left)
             if self.corners_on_tape(tip, measured, width):
-                return measured if not check_trunk or self.trunk_on_tape(tip, measured) else None
+                return measured if self.trunk_on_tape(tip, measured) else None
         return None
 
 
@@ -654,9 +654,7 @@ def _trace(needle: _Needle, angles: np.ndarray, spec, width: float):
             if half is not None and half[0] <= PROBE_CONFIRM_M and (half[1] - p) @ R[:, 0] > 0:
                 walked += float(np.linalg.norm(half[1] - p))
                 p = half[1]
-            # Where the trace touched the tape over TRUNK_CHECK_M behind the end, that is its
-            # trunk check (curled or not); a shorter trace's end gets the usual one.
-            frame = needle.end_frame(p, R, width, check_trunk=walked < TRUNK_CHECK_M)
+            frame = needle.end_frame(p, R, width)
             return None if frame is None else (p, frame, walked)
         R = _frame_along(nxt - p, R[:, 1])
         walked += float(np.linalg.norm(nxt - p))

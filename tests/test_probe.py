@@ -151,8 +151,11 @@ def test_after_inconclusive_probes_only_a_clearly_closest_touched_tip_is_kept():
 
 
 @pytest.mark.parametrize("back_mm, off_mm, passes", [(12.0, 0.0, True), (12.0, 6.5, True), (12.0, 8.0, False),
+                                                     (8.0, 4.0, True), (8.0, 6.0, False), (16.0, 9.0, True),
                                                      (2.0, 0.0, False), (30.0, 0.0, False)])
 def test_the_trunk_touch_must_lie_on_the_ends_trunk_where_the_pads_hold_it(back_mm, off_mm, passes):
+    """6-18 mm back along the end's trunk, bent off it by at most atan(7 / 12) (30 deg)
+    wherever it was touched (a 38 deg bend touched 8 mm back, only 5 mm off, is refused)."""
     from tapecell.cell.probe import trunk_touch_problem
 
     R = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])       # trunk -z, left +y, normal +x
@@ -161,4 +164,5 @@ def test_the_trunk_touch_must_lie_on_the_ends_trunk_where_the_pads_hold_it(back_
     problem = trunk_touch_problem(tip, R, touched)
     assert (problem is None) == passes
     if not passes:
-        assert ("back from the end" in problem) and (("off the estimated end's trunk" in problem) == (off_mm > 7))
+        assert "back from the end" in problem
+        assert ("deg bend" in problem) == (6.0 <= back_mm <= 18.0)

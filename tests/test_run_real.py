@@ -268,7 +268,7 @@ def _ambiguous_with_alternative(monkeypatch, offset_m):
 def _guide_needle_to(robot, target, monkeypatch, behind=None):
     """Every prompt answers Enter after 'guiding' the arm so the needle tip is at ``target``
     (what an operator does in freedrive), or, asked for the centre line behind the end, at
-    ``behind`` (3,) [m]."""
+    ``behind`` (3,) [m] (a string: that answer, e.g. "s" to skip the point)."""
     import numpy as np
 
     from tapecell.cell.kinematics import ik_nearest
@@ -282,6 +282,8 @@ def _guide_needle_to(robot, target, monkeypatch, behind=None):
         if "needle" in prompt:
             world_from_needle = np.eye(4)
             world_from_needle[:3, :3] = np.diag([1.0, -1.0, -1.0])       # pointing down
+            if "centre line" in prompt and isinstance(behind, str):
+                return behind                                             # e.g. "s": skipped
             world_from_needle[:3, 3] = behind if "centre line" in prompt and behind is not None else target
             robot.q = ik_nearest(world_from_needle @ invert(needle), robot.q)
         return ""
@@ -342,10 +344,34 @@ def test_probe_whose_trunk_touch_is_off_the_end_moves_nothing(real_like, monkeyp
     code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
                  "--execute", "--probe", "--yes"])
     out, err = capsys.readouterr()
-    assert code == 1 and "off the estimated end's trunk (> 7 mm)" in err.strip().splitlines()[-1]
+    assert code == 1 and "off the estimated end's trunk, a 40 deg bend (> 30 deg)" in err.strip().splitlines()[-1]
     assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
     names = [c[0] for c in robot.log]
     assert "teachMode" in names and "endTeachMode" in names
+
+
+def test_probe_without_the_trunk_touch_moves_nothing(real_like, monkeypatch, capsys):
+    """--execute --probe: the needle on the tape's end confirms hypothesis 0, but the operator
+    skips the touch on the centre line behind it: nothing moves, freedrive ended."""
+    import numpy as np
+    from fakes import FakeRobot, install_fake_rtde
+
+    images, cameras = real_like
+    real_estimate = _ambiguous_with_alternative(monkeypatch, [0.0, 0.0, 0.02])
+    robot = FakeRobot(np.array(load_cell_config().arm.park_joints))
+    install_fake_rtde(monkeypatch, robot, probe=False)
+    from tapecell.estimator.capture import load_cameras
+    from tapecell.cli.commands.run import grab_capture
+
+    truth = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images))
+    _guide_needle_to(robot, truth.tip_position, monkeypatch, "s")
+    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
+                 "--execute", "--probe", "--yes"])
+    out, err = capsys.readouterr()
+    assert code == 1 and "was not put on the tape's centre line" in err.strip().splitlines()[-1]
+    assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
+    names = [c[0] for c in robot.log]
+    assert "teachMode" in names and names.index("teachMode") < names.index("endTeachMode")
 
 
 def test_probe_that_confirms_no_hypothesis_moves_nothing(real_like, monkeypatch, capsys):

@@ -25,7 +25,10 @@ if none or several are, nothing moves. A "poor_fit" whose views show tape past t
 end, or whose end the model does not explain, is measured the same way: the needle on
 the tape's end, within 4 mm of the estimated end's line and at most 25 mm past it, moves
 the tip there. A touch that confirms nothing but lies 4-12 mm from exactly one tip refits
-that shape through it (kept when it still explains the views); elsewhere nothing moves. Any other
+that shape through it (kept when it still explains the views); elsewhere nothing moves. Then
+you put the needle on the tape's centre line about 12 mm back from its end, where the pads
+will hold it: that touch must lie 6-18 mm back along the settled end's trunk and bend off it
+by at most 30 deg, else nothing moves (the trunk check). Any other
 "poor_fit" is refused: the model does not explain what was seen.
 
 Nothing moves without --execute. With --execute the robot's address and the plan are
@@ -217,7 +220,7 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
                                       "again before moving", prompt, log)
     distances = [float(np.linalg.norm(touched - t)) for t in tips]
     story.add("probes", None, [{"label": f"hypothesis {k}", "aimed": t, "touched": touched, "t": None}
-                               for k, t in enumerate(tips)] + [_trunk_probe(est, trunk_touch)])
+                               for k, t in enumerate(tips)])
     k = confirmed(distances)
     listed = ", ".join(f"{1e3 * d:.1f}" for d in distances)
     near = [j for j, d in enumerate(distances) if d <= REFIT_TOUCH_MAX_M]
@@ -225,13 +228,13 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
         # One hypothesis' end a few mm from the touch, none on it: refit it through the touch.
         settled = _refit_through(capture, est, near[0], touched, f"hypothesis {near[0]}'s tip")
         if settled is not None:
-            return _trunk_checked(settled, trunk_touch)
+            return _trunk_checked(settled, trunk_touch, story)
     if k is None:
         raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm confirms none of the "
                          f"{len(tips)} hypotheses of the tape's end (their tips are {listed} mm away; one must be "
                          f"within {PROBE_CONFIRM_M * 1e3:.0f} mm, the only one so near and clearly the closest); nothing moved")
     reason = f"hypothesis {k} confirmed by the needle ({1e3 * distances[k]:.1f} mm from its tip)"
-    return _trunk_checked(adopt(est, k, capture.tape, reason), trunk_touch)
+    return _trunk_checked(adopt(est, k, capture.tape, reason), trunk_touch, story)
 
 
 def _touch_end(cfg, yes: bool, what: str, then: str, prompt=None, log=print) -> tuple[np.ndarray, np.ndarray]:
@@ -261,20 +264,15 @@ def _touch_end(cfg, yes: bool, what: str, then: str, prompt=None, log=print) -> 
     return np.asarray(points["tip"], float), np.asarray(points[back], float)
 
 
-def _trunk_probe(est, trunk_touch: np.ndarray) -> dict:
-    """The recording's entry of the touch on the centre line behind ``est``'s end."""
-    from tapecell.cell.probe import TRUNK_CHECK_M
-
-    aimed = np.asarray(est.tip_position, float) - TRUNK_CHECK_M * np.asarray(est.tip_rotation, float)[:, 0]
-    return {"label": "trunk", "aimed": aimed, "touched": trunk_touch, "t": None}
-
-
-def _trunk_checked(est, trunk_touch: np.ndarray):
+def _trunk_checked(est, trunk_touch: np.ndarray, story):
     """``est`` (settled by the needle) when the operator's touch on the centre line behind its
     end passes the trunk check (:func:`tapecell.cell.probe.trunk_touch_problem`); else
-    :class:`TaskFailed` (nothing moved but by hand)."""
-    from tapecell.cell.probe import trunk_touch_problem
+    :class:`TaskFailed` (nothing moved but by hand). The touch goes into ``story`` against the
+    point TRUNK_CHECK_M back along the settled end's trunk."""
+    from tapecell.cell.probe import TRUNK_CHECK_M, trunk_touch_problem
 
+    aimed = np.asarray(est.tip_position, float) - TRUNK_CHECK_M * np.asarray(est.tip_rotation, float)[:, 0]
+    story.add("probes", None, [{"label": "trunk", "aimed": aimed, "touched": trunk_touch, "t": None}])
     problem = trunk_touch_problem(est.tip_position, est.tip_rotation, trunk_touch)
     if problem is not None:
         raise TaskFailed(f"{problem}; nothing moved")
@@ -302,14 +300,13 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
                                       "then plan the grasp at the end the needle measured, show it and ask again "
                                       "before moving", prompt, log)
     tip, trunk = np.asarray(est.tip_position, float), np.asarray(est.tip_rotation, float)[:, 0]
-    story.add("probes", None, [{"label": "end", "aimed": tip, "touched": touched, "t": None},
-                               _trunk_probe(est, trunk_touch)])
+    story.add("probes", None, [{"label": "end", "aimed": tip, "touched": touched, "t": None}])
     end = measured_end(tip, trunk, touched)
     if end is None and float(np.linalg.norm(touched - tip)) <= REFIT_TOUCH_MAX_M:
         # Off the end's line but a few mm from the tip: refit the shape through the touch.
         settled = _refit_through(capture, est, 0, touched, "the tip", past_end=PAST_END in est.verdict_reason)
         if settled is not None:
-            return _trunk_checked(settled, trunk_touch)
+            return _trunk_checked(settled, trunk_touch, story)
     if end is None:
         raise TaskFailed(f"the needle at [{', '.join(f'{v * 1e3:.1f}' for v in touched)}] mm is not on the estimated "
                          f"end's line (it must lie within {PROBE_CONFIRM_M * 1e3:.0f} mm of it, from "
@@ -318,7 +315,7 @@ def measure_end_with_needle(cfg, capture, est, story, yes: bool, prompt=None, lo
     moved = float(np.linalg.norm(end - tip))
     reason = f"the tape's end measured by the needle: {moved * 1e3:.1f} mm past the model's end"
     return _trunk_checked(dataclasses.replace(est, tip_position=end, verdict=Verdict.OK, verdict_reason=reason),
-                          trunk_touch)
+                          trunk_touch, story)
 
 
 def _refit_through(capture, est, k: int, touched: np.ndarray, what: str, past_end: bool = False):
