@@ -325,10 +325,12 @@ def test_probe_settles_an_ambiguous_estimate_with_the_needle_then_grasps(real_li
     assert "started freedrive" not in err
 
 
-def test_probe_whose_trunk_touch_is_off_the_end_moves_nothing(real_like, monkeypatch, capsys):
+@pytest.mark.parametrize("behind, message", [("off", "off the estimated end's trunk, a 40 deg bend (> 30 deg)"),
+                                             ("s", "was not put on the tape's centre line")])
+def test_probe_whose_trunk_touch_fails_moves_nothing(real_like, monkeypatch, capsys, behind, message):
     """--execute --probe: the needle on the tape's end confirms hypothesis 0, but the tape 12
     mm back from the end is 10 mm off that end's trunk (it bends away where the pads would
-    hold it): refused after freedrive, nothing moved."""
+    hold it), or the operator skips that touch: refused after freedrive, nothing moved."""
     import numpy as np
     from fakes import FakeRobot, install_fake_rtde
 
@@ -340,35 +342,11 @@ def test_probe_whose_trunk_touch_is_off_the_end_moves_nothing(real_like, monkeyp
     from tapecell.cli.commands.run import grab_capture
 
     truth = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images))
-    _guide_needle_to(robot, truth.tip_position, monkeypatch, _behind(truth, off_m=0.010))
+    _guide_needle_to(robot, truth.tip_position, monkeypatch, _behind(truth, off_m=0.010) if behind == "off" else behind)
     code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
                  "--execute", "--probe", "--yes"])
     out, err = capsys.readouterr()
-    assert code == 1 and "off the estimated end's trunk, a 40 deg bend (> 30 deg)" in err.strip().splitlines()[-1]
-    assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
-    names = [c[0] for c in robot.log]
-    assert "teachMode" in names and "endTeachMode" in names
-
-
-def test_probe_without_the_trunk_touch_moves_nothing(real_like, monkeypatch, capsys):
-    """--execute --probe: the needle on the tape's end confirms hypothesis 0, but the operator
-    skips the touch on the centre line behind it: nothing moves, freedrive ended."""
-    import numpy as np
-    from fakes import FakeRobot, install_fake_rtde
-
-    images, cameras = real_like
-    real_estimate = _ambiguous_with_alternative(monkeypatch, [0.0, 0.0, 0.02])
-    robot = FakeRobot(np.array(load_cell_config().arm.park_joints))
-    install_fake_rtde(monkeypatch, robot, probe=False)
-    from tapecell.estimator.capture import load_cameras
-    from tapecell.cli.commands.run import grab_capture
-
-    truth = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images))
-    _guide_needle_to(robot, truth.tip_position, monkeypatch, "s")
-    code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
-                 "--execute", "--probe", "--yes"])
-    out, err = capsys.readouterr()
-    assert code == 1 and "was not put on the tape's centre line" in err.strip().splitlines()[-1]
+    assert code == 1 and message in err.strip().splitlines()[-1]
     assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
     names = [c[0] for c in robot.log]
     assert "teachMode" in names and names.index("teachMode") < names.index("endTeachMode")
