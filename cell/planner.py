@@ -361,10 +361,10 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
         grasp_position, grasp_rotation = grasp_frame(tip, inset, params.inset, tape_points)
         for tilts in (APPROACH_TILTS_RAD, BODY_SIDE_TILTS_RAD):
             primary = primary or len(refusals)
+            if inset >= FAR_INSET_M - 1e-9:
+                tilts = tuple(t for t in tilts if SIDE_TILT_MIN_RAD - 1e-9 <= abs(t) <= SIDE_TILT_MAX_RAD + 1e-9)
             for pitch in APPROACH_PITCHES_RAD:
                 for tilt in tilts:
-                    if inset >= FAR_INSET_M - 1e-9 and not SIDE_TILT_MIN_RAD - 1e-9 <= abs(tilt) <= SIDE_TILT_MAX_RAD + 1e-9:
-                        continue
                     for flipped in (False, True):
                         try:
                             plan = _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper,

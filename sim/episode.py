@@ -362,19 +362,23 @@ class _Needle:
 
     def end_frame(self, tip: np.ndarray, R: np.ndarray, width: float) -> np.ndarray | None:
         """The frame of the end at ``tip``: ``R`` when both its corners are tape
-        (:meth:`corners_on_tape`); else the twist the needle finds (a hooked end seen along
-        its trunk leaves its twist tens of degrees off): ``R`` turned about its trunk by each
-        of TWIST_SEARCH_DEG in turn, the first whose corners are both touched gives the
-        lateral axis through the two touches (square to the trunk), kept when that frame's
-        corners are tape too (else the next turn is tried). None when none is, and None when the
-        frame found fails the trunk check (:meth:`trunk_on_tape`: the tape leaves the end's
-        trunk where the pads would hold it; the twist does not change that), a traced end's
-        too (its frame is the trace's last 5 mm step; a tape curled tighter behind it would
-        leave the jaw's straight inset as well)."""
+        (:meth:`corners_on_tape`), else the twist the corners find (:meth:`_twist_frame`);
+        None when neither is, or when the frame found fails the trunk check
+        (:meth:`trunk_on_tape`: the tape leaves the end's trunk where the pads would hold it;
+        the twist does not change that), a traced end's too (its frame is the trace's last
+        5 mm step; a tape curled tighter behind it would leave the jaw's straight inset as
+        well)."""
+        frame = R if self.corners_on_tape(tip, R, width) else self._twist_frame(tip, R, width)
+        return frame if frame is not None and self.trunk_on_tape(tip, frame) else None
+
+    def _twist_frame(self, tip: np.ndarray, R: np.ndarray, width: float) -> np.ndarray | None:
+        """The twist of an end whose corners at ``R`` are not both tape (a hooked end seen
+        along its trunk leaves its twist tens of degrees off): ``R`` turned about its trunk
+        by each of TWIST_SEARCH_DEG in turn, the first whose corners are both touched gives
+        the lateral axis through the two touches (square to the trunk), kept when that
+        frame's corners are tape too (else the next turn is tried). None when none is."""
         from tapecell.cell.probe import PROBE_CORNER_M
 
-        if self.corners_on_tape(tip, R, width):
-            return R if self.trunk_on_tape(tip, R) else None
         trunk = R[:, 0]
         for deg in TWIST_SEARCH_DEG:
             turned = R @ rot_x(np.radians(deg))
@@ -386,7 +390,7 @@ class _Needle:
                 continue
             measured = _frame_along(trunk, left)
             if self.corners_on_tape(tip, measured, width):
-                return measured if self.trunk_on_tape(tip, measured) else None
+                return measured
         return None
 
 
