@@ -45,7 +45,7 @@ from .chain import Chain
 from .config import DEFAULT, FitConfig
 from .errors import EstimateError
 from .geometry import Camera
-from .refine import hypotheses, mirrors, refine, variants
+from .refine import hooks, hypotheses, mirrors, refine, variants
 from .result import Alternative, Estimate, Verdict
 from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
@@ -123,6 +123,12 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
         a2, t2, c2 = refine(chain, fields, wide, silhouette_costs, pool, cfg)
         if c2 < cfg.wide_gain * cost:
             angles, trace, cost = a2, trace + t2, c2
+        if thorough and cfg.hook_bends:
+            # An end hooked back, out of sight behind the body: refined from the first
+            # look's winner; every refined chain joins the hypotheses the needle can check.
+            a3, t3, c3 = refine(chain, fields, hooks(first.angles, cfg.hook_bends), silhouette_costs, pool, cfg)
+            if c3 < cost:
+                angles, trace, cost = a3, first.trace + t3, c3
     fallback = None
     tip = None
     if cfg.strip:
@@ -227,6 +233,8 @@ def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
     hidden and cost less)."""
     if folded or second.cost < first.cost:
         return second
+    if not first.actionable and not second.actionable:
+        return _with_alternatives(first, second)
     if not second.actionable or not is_close_alternative(second.cost, first.cost):
         return first
     d = float(np.linalg.norm(second.tip_position - first.tip_position))
@@ -241,6 +249,25 @@ def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
                                verdict_reason=(f"a shape with its tip {1e3 * d:.0f} mm away explains the views nearly "
                                                f"as well (cost {second.cost:.3f} vs {first.cost:.3f}) and locates "
                                                f"the end where this one does not"))
+
+
+def _with_alternatives(first: Estimate, second: Estimate) -> Estimate:
+    """``first`` (not "ok") with the second look's shape and its alternatives among its own
+    alternatives (best first), each that explains the views nearly as well as ``first`` and
+    whose tip is more than DISTINCT_TIP_M from ``first``'s and from every one kept: neither
+    look may act, but the needle can check every shape either found (a tip curled back out
+    of sight that the thorough look found 3 mm off, whose strip cost a little more than the
+    first look's wrong shape)."""
+    kept = list(first.alternatives)
+    offered = [Alternative(second.cost, second.tip_position, second.tip_rotation, second.angles)]
+    for a in sorted(offered + list(second.alternatives), key=lambda a: a.cost):
+        tips = [first.tip_position] + [k.tip_position for k in kept]
+        if is_close_alternative(a.cost, first.cost) and all(
+                np.linalg.norm(a.tip_position - t) > DISTINCT_TIP_M for t in tips):
+            kept.append(a)
+    if len(kept) == len(first.alternatives):
+        return first
+    return dataclasses.replace(first, alternatives=tuple(sorted(kept, key=lambda a: a.cost)))
 
 
 def _garbage(capture: Capture, faults: list, method: str, start: float, config: FitConfig) -> Estimate:

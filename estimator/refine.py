@@ -89,6 +89,24 @@ def variants(angles: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
+def hooks(angles: np.ndarray, bends) -> np.ndarray:
+    """Chains like ``angles`` (n, 3) whose end hooks back: the last plate, or the last two
+    together, bent out of plane by each of ``bends`` [rad] either way, untwisted. A tip
+    that curls back behind the tape's own body (or over its top, towards or away from a
+    camera) leaves the silhouette almost as a straight end does, and the beam's grid
+    (bends up to 1.5 rad per joint) does not reach it in one step."""
+    out = []
+    n = len(angles)
+    for j in range(max(n - 2, 0), n):
+        for bend in bends:
+            for sign in (1.0, -1.0):
+                a = angles.copy()
+                a[j:] = 0.0
+                a[j, 1] = sign * bend
+                out.append(a)
+    return np.array(out)
+
+
 def hypotheses(chain: Chain, pool: list, winner: np.ndarray) -> list:
     """The distinct shapes among the refined chains ``pool`` [(eq.-11 cost, angles)]: best
     first, each tip more than DISTINCT_TIP_M from the winner's plate fit and from every
