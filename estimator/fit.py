@@ -233,8 +233,6 @@ def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
     hidden and cost less)."""
     if folded or second.cost < first.cost:
         return second
-    if not first.actionable and not second.actionable:
-        return _with_alternatives(first, second)
     if not second.actionable or not is_close_alternative(second.cost, first.cost):
         return first
     d = float(np.linalg.norm(second.tip_position - first.tip_position))
@@ -249,25 +247,6 @@ def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
                                verdict_reason=(f"a shape with its tip {1e3 * d:.0f} mm away explains the views nearly "
                                                f"as well (cost {second.cost:.3f} vs {first.cost:.3f}) and locates "
                                                f"the end where this one does not"))
-
-
-def _with_alternatives(first: Estimate, second: Estimate) -> Estimate:
-    """``first`` (not "ok") with the second look's shape and its alternatives among its own
-    alternatives (best first), each that explains the views nearly as well as ``first`` and
-    whose tip is more than DISTINCT_TIP_M from ``first``'s and from every one kept: neither
-    look may act, but the needle can check every shape either found (a tip curled back out
-    of sight that the thorough look found 3 mm off, whose strip cost a little more than the
-    first look's wrong shape)."""
-    kept = list(first.alternatives)
-    offered = [Alternative(second.cost, second.tip_position, second.tip_rotation, second.angles)]
-    for a in sorted(offered + list(second.alternatives), key=lambda a: a.cost):
-        tips = [first.tip_position] + [k.tip_position for k in kept]
-        if is_close_alternative(a.cost, first.cost) and all(
-                np.linalg.norm(a.tip_position - t) > DISTINCT_TIP_M for t in tips):
-            kept.append(a)
-    if len(kept) == len(first.alternatives):
-        return first
-    return dataclasses.replace(first, alternatives=tuple(sorted(kept, key=lambda a: a.cost)))
 
 
 def _garbage(capture: Capture, faults: list, method: str, start: float, config: FitConfig) -> Estimate:
