@@ -357,6 +357,11 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
         # An "ok" estimate (a fold, an end seen end-on) gets a smaller thorough beam
         # (FitConfig.fold_beam).
         look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok else config
+        if verdict is not Verdict.HIDDEN:
+            # Hooked-back ends only where the end is out of sight: a hooked plate fit whose
+            # strip cannot follow it lowered the scale alternatives are weighed on, and
+            # made an ambiguous part capture 9.5 mm off "ok" (fresh 860000).
+            look = dataclasses.replace(look, hook_bends=())
         second = _look(capture, method, None, True, look, True, first)
         return dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
     return est
