@@ -22,6 +22,8 @@ analytic Jacobian:
 5. Only when that cost is high (a poor fit) a wide stage runs: a finer, larger beam plus
    the other branches next to the winner (mirrored bends, flipped or quarter-turned
    twists); its result replaces the first only when its eq.-11 cost is clearly lower.
+   The thorough look of a "hidden" estimate also refines the winner with its end hooked
+   back out of sight behind the body (:func:`refine.hooks`), kept when it costs less.
 6. Strip stage: a 30 mm plate cannot follow a tape that curls within its length, so its
    last plate is a chord and the tip lands mm off. From the winner, a continuous strip
    (a fine chain whose twist and bend rates vary linearly between knots at the model's
