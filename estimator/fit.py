@@ -135,7 +135,7 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
     tip = None
     if cfg.strip:
         output = first.strip(chain, angles, cfg)
-        tip = output.tip
+        tip = output.tip + (output.quads,)
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
         # above the guard: the chain without the tip-frame pull, then the plate fit.
@@ -207,17 +207,22 @@ def _costed(capture: Capture, angles: np.ndarray):
 
 
 def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, shape, tip_position: np.ndarray,
-           tip_rotation: np.ndarray, best_cost: float, hypotheses: list):
+           tip_rotation: np.ndarray, best_cost: float, hypotheses: list, strip_quads: np.ndarray | None = None):
     """(verdict, reason, tip_views, alternatives) of the output ``shape`` whose
     ``view_costs`` ``evaluator`` gave; ``best_cost``: the plate fit's eq.-11 cost, the
-    scale of the ``hypotheses`` [(cost, angles)]."""
+    scale of the ``hypotheses`` [(cost, angles)]; ``strip_quads``: the strip's fine plates
+    (m, 4, 3) when the tip is the strip's end: the views' silhouettes are then judged
+    against the strip's (the cost per view stays the output chain's)."""
     near = []
     for cost, a in hypotheses:
         if is_close_alternative(cost, best_cost):
             alt = forward_kinematics(capture.tape, a)
             near.append(Alternative(cost, alt.nodes[-1].copy(), alt.frames[-1].copy(), a))
     targets = evaluator.targets
-    models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(shape.quads()), targets)]
+    # Where the tip is the strip's end, what the views show is held against the strip's
+    # silhouette, which follows a curl that the plate chain's last plate cuts across as a chord.
+    judged = shape.quads() if strip_quads is None else strip_quads
+    models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(judged), targets)]
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
                [(a.cost, a.tip_position) for a in near])
@@ -234,12 +239,12 @@ def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
     synthetic capture with the part in front: the first look's shape, 0.8 mm off, was
     hidden and cost less)."""
     if folded or second.cost < first.cost:
-        return second
+        return _rivals_kept(first, second)
     if not second.actionable or not is_close_alternative(second.cost, first.cost):
         return first
     d = float(np.linalg.norm(second.tip_position - first.tip_position))
     if d <= DISTINCT_TIP_M:
-        return second
+        return _rivals_kept(first, second)
     alternatives = tuple(first.alternatives)
     if all(np.linalg.norm(a.tip_position - second.tip_position) > DISTINCT_TIP_M for a in alternatives):
         alternatives = (Alternative(second.cost, second.tip_position, second.tip_rotation, second.angles),) + alternatives
@@ -249,6 +254,26 @@ def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
                                verdict_reason=(f"a shape with its tip {1e3 * d:.0f} mm away explains the views nearly "
                                                f"as well (cost {second.cost:.3f} vs {first.cost:.3f}) and locates "
                                                f"the end where this one does not"))
+
+
+def _rivals_kept(first: Estimate, second: Estimate) -> Estimate:
+    """``second`` (the answer after the second look), ``ambiguous`` where it is "ok" while
+    an alternative of ``first`` explains the views nearly as well as it does, with its tip
+    more than DISTINCT_TIP_M from the second's: the thorough look does not refine again what
+    the first look's wide search found, and may not make a rival vanish by not finding it
+    (a wrong "ok" 24 mm off on a fresh clean capture, 866008: the first look was ambiguous
+    with a shape 3.5 mm off costing 0.049 against 0.043; the second, at the same tip and
+    0.043, had lost it)."""
+    if second.verdict is not Verdict.OK:
+        return second
+    rivals = [a for a in first.alternatives if is_close_alternative(a.cost, second.cost)
+              and np.linalg.norm(a.tip_position - second.tip_position) > DISTINCT_TIP_M]
+    if not rivals:
+        return second
+    d = float(np.linalg.norm(rivals[0].tip_position - second.tip_position))
+    return dataclasses.replace(second, verdict=Verdict.AMBIGUOUS, alternatives=tuple(rivals),
+                               verdict_reason=(f"a shape with its tip {1e3 * d:.0f} mm away explains the views nearly "
+                                               f"as well (cost {rivals[0].cost:.3f} vs {second.cost:.3f})"))
 
 
 def _garbage(capture: Capture, faults: list, method: str, start: float, config: FitConfig) -> Estimate:
@@ -329,9 +354,11 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     plate_cost = fallback[0] if fallback is not None else combine(view_costs)
     # The tip frame: the strip's end (it follows a tip that curls within one plate, where
     # the last plate is a chord), else the plate chain's F_n at P_C[n].
-    tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
+    tip_position, tip_rotation, strip_quads = (tip if tip is not None else
+                                               (shape.nodes[-1].copy(), shape.frames[-1].copy(), None))
     verdict, reason, tip_views, alternatives, offsets = _judge(capture, evaluator, view_costs, shape, tip_position, tip_rotation,
-                                                      min(plate_cost, combine(view_costs)), found)
+                                                      min(plate_cost, combine(view_costs)), found,
+                                                      strip_quads if config.strip_judged else None)
     elapsed = time.perf_counter() - start
     if method == "default":
         # The cost per iteration on the eq.-11 scale, for recordings and plots.
