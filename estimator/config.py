@@ -146,13 +146,6 @@ class FitConfig:
     F_n along the chord tilts from the tape's frame at the tip by half the curl, so the
     chain's last plate is pulled part of the way towards the strip's tip frame (measured:
     tip normal median 6.4 -> 4.8 deg on the samples, tip error unchanged)."""
-    strip_judged: bool = True
-    """Where the tip is the strip's end, the verdict holds what the views show near it (tape
-    left unexplained, a free end not explained, a sliver) against the strip's silhouette,
-    not the output plate chain's, whose last plate is a chord of a curl (off: the plate
-    chain's). On fresh 860000 and 866000 (765 captures) it made four needless refusals "ok"
-    (0.3-0.7 mm: observed tape along the curl that the chord leaves out, 29-33 px) and
-    two shell captures 4.1-4.2 mm off "ok"; no other verdict changed."""
     strip_guard: float = 2.0
     """The chain taken from the strip is dropped when its silhouette cost (eq. 11) exceeds
     this multiple of the plate chain's own fit (a strip fit gone astray)."""

@@ -135,7 +135,7 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
     tip = None
     if cfg.strip:
         output = first.strip(chain, angles, cfg)
-        tip = output.tip + (output.quads,)
+        tip = output.tip
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
         # above the guard: the chain without the tip-frame pull, then the plate fit.
@@ -207,22 +207,17 @@ def _costed(capture: Capture, angles: np.ndarray):
 
 
 def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, shape, tip_position: np.ndarray,
-           tip_rotation: np.ndarray, best_cost: float, hypotheses: list, strip_quads: np.ndarray | None = None):
+           tip_rotation: np.ndarray, best_cost: float, hypotheses: list):
     """(verdict, reason, tip_views, alternatives) of the output ``shape`` whose
     ``view_costs`` ``evaluator`` gave; ``best_cost``: the plate fit's eq.-11 cost, the
-    scale of the ``hypotheses`` [(cost, angles)]; ``strip_quads``: the strip's fine plates
-    (m, 4, 3) when the tip is the strip's end: the views' silhouettes are then judged
-    against the strip's (the cost per view stays the output chain's)."""
+    scale of the ``hypotheses`` [(cost, angles)]."""
     near = []
     for cost, a in hypotheses:
         if is_close_alternative(cost, best_cost):
             alt = forward_kinematics(capture.tape, a)
             near.append(Alternative(cost, alt.nodes[-1].copy(), alt.frames[-1].copy(), a))
     targets = evaluator.targets
-    # Where the tip is the strip's end, what the views show is held against the strip's
-    # silhouette, which follows a curl that the plate chain's last plate cuts across as a chord.
-    judged = shape.quads() if strip_quads is None else strip_quads
-    models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(judged), targets)]
+    models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(shape.quads()), targets)]
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
                [(a.cost, a.tip_position) for a in near])
@@ -354,11 +349,9 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     plate_cost = fallback[0] if fallback is not None else combine(view_costs)
     # The tip frame: the strip's end (it follows a tip that curls within one plate, where
     # the last plate is a chord), else the plate chain's F_n at P_C[n].
-    tip_position, tip_rotation, strip_quads = (tip if tip is not None else
-                                               (shape.nodes[-1].copy(), shape.frames[-1].copy(), None))
+    tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
     verdict, reason, tip_views, alternatives, offsets = _judge(capture, evaluator, view_costs, shape, tip_position, tip_rotation,
-                                                      min(plate_cost, combine(view_costs)), found,
-                                                      strip_quads if config.strip_judged else None)
+                                                      min(plate_cost, combine(view_costs)), found)
     elapsed = time.perf_counter() - start
     if method == "default":
         # The cost per iteration on the eq.-11 scale, for recordings and plots.

@@ -119,7 +119,6 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
         return levenberg_marquardt_one(fun, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
 
     output.tip = (fine.nodes[-1].copy(), fine.frames[-1].copy())   # the strip's end frame
-    output.quads = fine.quads()                                     # its fine plates (m, 4, 3)
     return output
 
 

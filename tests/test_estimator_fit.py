@@ -173,7 +173,6 @@ def test_strip_guard_keeps_the_plate_chain_when_the_strip_goes_astray(monkeypatc
         def output(frame_weight):
             return angles + 0.5
         output.tip = (np.full(3, 9.0), np.eye(3))
-        output.quads = np.full((4, 4, 3), 9.0)   # its fine plates, as far off
         return output
 
     monkeypatch.setattr(fit, "strip_stage", astray)

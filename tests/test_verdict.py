@@ -365,9 +365,7 @@ def test_sliver_views_on_simulated_captures():
     """Two MuJoCo captures (2 cameras, `tapecell sim`'s renderer) whose second view sees the
     end edge-on as a sliver. sim-chain-c2-610001: the model explains that view whole and the
     other view locates the end: "ok", the tip within 1.5 mm (it was "hidden"). Shell tape
-    550008: the sliver goes on as dots 270 px past the end of the model of an earlier fit
-    (81 mm off), which was "ok": never "ok" off the end. (Today's fit is 0.5 mm off; judged
-    against the strip, which follows the end's curl, it is "ok".)"""
+    550008: the sliver goes on as dots 270 px past the model's end (81 mm): not "ok"."""
     from tapecell.estimator import load_capture
 
     good = load_capture(DATA / "sim-chain-c2-610001")
@@ -376,7 +374,7 @@ def test_sliver_views_on_simulated_captures():
     assert _tip_mm(good, est) < 1.5
     bad = load_capture(DATA / "sim-shell-c2-550008")
     est = estimate(bad)
-    assert est.verdict is not Verdict.OK or _tip_mm(bad, est) < 3.0, f"ok at {_tip_mm(bad, est):.1f} mm"
+    assert est.verdict is not Verdict.OK, f"ok at {_tip_mm(bad, est):.1f} mm"
 
 
 def test_a_view_of_the_tape_edge_on_is_fitted_not_cropped():
@@ -526,15 +524,3 @@ def test_a_rival_the_first_look_found_is_not_lost_by_the_second():
     assert est.verdict is Verdict.AMBIGUOUS
     assert min(np.linalg.norm(a.tip_position - capture.truth.tip_position) for a in est.alternatives) < 0.005
 
-
-def test_the_end_is_judged_against_the_strip_that_follows_its_curl():
-    """Synthetic capture 860004 with the part (2 cameras): the tape curls towards its end,
-    and the output plate chain's last plate cuts across the curl as a chord, leaving 33 px
-    of observed tape near the tip unexplained in one view, so that view did not locate the
-    end ("hidden", though the tip is 0.4 mm off). Judged against the strip, whose end is the
-    tip, the end is located: "ok"."""
-    capture = make_capture(860004, SyntheticOptions(part=True, cameras=2))
-    est = estimate(capture)
-    assert est.verdict is Verdict.OK and _tip_mm(capture, est) < 1.0
-    chord = estimate(capture, config=dataclasses.replace(DEFAULT_CONFIG, strip_judged=False))
-    assert chord.verdict is Verdict.HIDDEN
