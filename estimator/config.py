@@ -114,11 +114,12 @@ class FitConfig:
     """The wide search also refines the winner's other branches (mirrored bends, flipped or
     quarter-turned twists)."""
     hook_bends: tuple = (1.6, 2.2, 2.8)
-    """In the thorough look of a "hidden" estimate, the first look's winner with its end
-    hooked back by these out-of-plane bends [rad] of its last plate or last two
-    (:func:`refine.hooks`) is refined too, and replaces the winner when it explains the
-    views better: a tip curled back behind the tape's body, out of every camera's sight,
-    which the beam's grid does not reach (empty: off)."""
+    """In a thorough look (``estimate(thorough=True)``; as the second look, of a "hidden"
+    estimate only), the first look's winner with its end hooked back by these out-of-plane
+    bends [rad] of its last plate or last two (:func:`refine.hooks`) is refined too, and
+    replaces the winner when it explains the views better: a tip curled back behind the
+    tape's body, out of every camera's sight, which the beam's grid does not reach (empty:
+    off)."""
     wide_gain: float = 0.85
     """The wide search's result replaces the first when its eq.-11 cost is below this
     fraction of the first's (only a clear difference counts)."""
