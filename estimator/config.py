@@ -115,7 +115,8 @@ class FitConfig:
     quarter-turned twists)."""
     hook_bends: tuple = (1.6, 2.2, 2.8)
     """In a thorough look (``estimate(thorough=True)``; as the second look, of a "hidden"
-    estimate only), the first look's winner with its end hooked back by these out-of-plane
+    estimate only), the first stage's winner (the default grid's beam, refined, and its
+    mirrors; before any wide search) with its end hooked back by these out-of-plane
     bends [rad] of its last plate or last two (:func:`refine.hooks`) is refined too, and
     replaces the winner when it explains the views better: a tip curled back behind the
     tape's body, out of every camera's sight, which the beam's grid does not reach (empty:

@@ -127,7 +127,8 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
             angles, trace, cost = a2, trace + t2, c2
         if thorough and cfg.hook_bends:
             # An end hooked back, out of sight behind the body: refined from the first
-            # look's winner; every refined chain joins the hypotheses the needle can check.
+            # stage's winner (the default beam's, before any wide search); every refined
+            # chain joins the hypotheses the needle can check.
             a3, t3, c3 = refine(chain, fields, hooks(first.angles, cfg.hook_bends), silhouette_costs, pool, cfg)
             if c3 < cost:
                 angles, trace, cost = a3, first.trace + t3, c3
@@ -258,7 +259,10 @@ def _rivals_kept(first: Estimate, second: Estimate) -> Estimate:
     the first look's wide search found, and may not make a rival vanish by not finding it
     (a wrong "ok" 24 mm off on a fresh clean capture, 866008: the first look was ambiguous
     with a shape 3.5 mm off costing 0.049 against 0.043; the second, at the same tip and
-    0.043, had lost it)."""
+    0.043, had lost it). The margin is taken on the answer's own cost (its output chain's),
+    which may be above the plate fit's cost the verdict weighs alternatives against: the
+    rule errs towards "ambiguous". The answer's own alternatives are not kept: an "ok"
+    answer has none within the margin."""
     if second.verdict is not Verdict.OK:
         return second
     rivals = [a for a in first.alternatives if is_close_alternative(a.cost, second.cost)

@@ -421,7 +421,7 @@ def test_a_hairpin_fold_at_the_end_gets_the_thorough_look():
 def test_an_end_hooked_back_out_of_sight_is_found_by_the_thorough_look():
     """A simulated episode's capture (seed 857182, 2 cameras): the tape rises and its end
     hooks back down behind its own body, out of sight from both cameras. The first look
-    returns a shape 45 mm off, "hidden"; the thorough look refines the first's winner with
+    returns a shape 45 mm off, "hidden"; the thorough look refines the first stage's winner with
     its end hooked back (FitConfig.hook_bends) and finds the true shape within 2 mm, which
     explains the views better, with the first as an alternative for the needle. Without
     the hooks the thorough look does not find it."""
@@ -435,7 +435,7 @@ def test_an_end_hooked_back_out_of_sight_is_found_by_the_thorough_look():
     assert first.verdict is Verdict.HIDDEN and _tip_mm(capture, first) > 10.0
     est = estimate(capture)
     assert _tip_mm(capture, est) < 2.0 and est.cost < first.cost
-    assert est.verdict is not Verdict.OK   # the end is out of sight: the needle decides
+    assert est.verdict is not Verdict.OK   # the first look's shape is a close rival: the needle decides
     assert any(np.linalg.norm(a.tip_position - first.tip_position) < 0.001 for a in est.alternatives)
     unhooked = estimate(capture, config=dataclasses.replace(DEFAULT, hook_bends=()))
     assert _tip_mm(capture, unhooked) > 10.0
