@@ -158,6 +158,12 @@ refused. The simulated needle touches along the end's normal at that point
 centre line there, and :func:`trunk_touch_problem` judges the touch."""
 
 
+def trunk_point(tip_position: np.ndarray, tip_rotation: np.ndarray) -> np.ndarray:
+    """(3,) the point on the centre line TRUNK_CHECK_M back from the end at ``tip_position``
+    along its trunk (``tip_rotation``'s first column): where the trunk check touches."""
+    return np.asarray(tip_position, float) - TRUNK_CHECK_M * np.asarray(tip_rotation, float)[:, 0]
+
+
 def trunk_touch_problem(tip_position: np.ndarray, tip_rotation: np.ndarray, touched: np.ndarray) -> str | None:
     """Why the operator's touch ``touched`` (3,) [m] on the tape's centre line, about
     TRUNK_CHECK_M back from the end at ``tip_position`` (frame ``tip_rotation``: trunk, left,

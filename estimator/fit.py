@@ -53,7 +53,8 @@ from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
 from .tape import forward_kinematics
-from .verdict import DISTINCT_TIP_M, END_FOLD_DEG, FOLD_DEG, assess, end_on, is_close_alternative, mask_fault
+from .verdict import (DISTINCT_TIP_M, END_FOLD_DEG, FOLD_DEG, assess, end_on, is_close_alternative, mask_fault,
+                      rival_reason)
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -265,14 +266,12 @@ def _rivals_kept(first: Estimate, second: Estimate) -> Estimate:
     answer has none within the margin."""
     if second.verdict is not Verdict.OK:
         return second
-    rivals = [a for a in first.alternatives if is_close_alternative(a.cost, second.cost)
-              and np.linalg.norm(a.tip_position - second.tip_position) > DISTINCT_TIP_M]
+    rivals = tuple(a for a in first.alternatives
+                   if rival_reason(second.cost, second.tip_position, [(a.cost, a.tip_position)]))
     if not rivals:
         return second
-    d = float(np.linalg.norm(rivals[0].tip_position - second.tip_position))
-    return dataclasses.replace(second, verdict=Verdict.AMBIGUOUS, alternatives=tuple(rivals),
-                               verdict_reason=(f"a shape with its tip {1e3 * d:.0f} mm away explains the views nearly "
-                                               f"as well (cost {rivals[0].cost:.3f} vs {second.cost:.3f})"))
+    reason = rival_reason(second.cost, second.tip_position, [(a.cost, a.tip_position) for a in rivals])
+    return dataclasses.replace(second, verdict=Verdict.AMBIGUOUS, alternatives=rivals, verdict_reason=reason)
 
 
 def _garbage(capture: Capture, faults: list, method: str, start: float, config: FitConfig) -> Estimate:

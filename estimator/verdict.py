@@ -575,9 +575,17 @@ def judge(offsets_px: np.ndarray, tip_views: int, best_cost: float, best_tip: np
                                   f"{offsets_px[worst]:.1f} px > {POOR_OFFSET_PX:g} px")
     if tip_views < 2:
         return Verdict.HIDDEN, f"{tip_views} camera(s) see the free end, 2 needed"
+    rival = rival_reason(best_cost, best_tip, alternatives)
+    return (Verdict.AMBIGUOUS, rival) if rival else (Verdict.OK, "")
+
+
+def rival_reason(best_cost: float, best_tip: np.ndarray, alternatives: Sequence[tuple[float, np.ndarray]]) -> str:
+    """Why an estimate of eq.-11 cost ``best_cost`` with its tip at ``best_tip`` is
+    ambiguous: the first of ``alternatives`` (eq.-11 cost, tip (3,)) whose tip is more than
+    DISTINCT_TIP_M away and that explains the views nearly as well; "" when none does."""
     for cost, tip in alternatives:
         d = float(np.linalg.norm(np.asarray(tip) - best_tip))
         if d > DISTINCT_TIP_M and is_close_alternative(cost, best_cost):
-            return Verdict.AMBIGUOUS, (f"a shape with its tip {1e3 * d:.0f} mm away explains the views "
-                                       f"nearly as well (cost {cost:.3f} vs {best_cost:.3f})")
-    return Verdict.OK, ""
+            return (f"a shape with its tip {1e3 * d:.0f} mm away explains the views "
+                    f"nearly as well (cost {cost:.3f} vs {best_cost:.3f})")
+    return ""

@@ -345,9 +345,9 @@ class _Needle:
         """Is the tape where the grasp will hold it: the point TRUNK_CHECK_M back from the end at
         ``tip`` along its trunk (frame ``R``), on the centre line, touched within
         TRUNK_TOUCH_M (see :data:`tapecell.cell.probe.TRUNK_TOUCH_M`)?"""
-        from tapecell.cell.probe import TRUNK_CHECK_M, TRUNK_TOUCH_M
+        from tapecell.cell.probe import TRUNK_TOUCH_M, trunk_point
 
-        hit = self.touch("trunk", tip - TRUNK_CHECK_M * R[:, 0], R)
+        hit = self.touch("trunk", trunk_point(tip, R), R)
         if self.notes is not None:
             self.notes.setdefault("probed_trunk_mm", []).append(None if hit is None else round(1e3 * hit[0], 2))
         return hit is not None and hit[0] <= TRUNK_TOUCH_M

@@ -269,9 +269,9 @@ def _trunk_checked(est, trunk_touch: np.ndarray, story):
     end passes the trunk check (:func:`tapecell.cell.probe.trunk_touch_problem`); else
     :class:`TaskFailed` (nothing moved but by hand). The touch goes into ``story`` against the
     point TRUNK_CHECK_M back along the settled end's trunk."""
-    from tapecell.cell.probe import TRUNK_CHECK_M, trunk_touch_problem
+    from tapecell.cell.probe import trunk_point, trunk_touch_problem
 
-    aimed = np.asarray(est.tip_position, float) - TRUNK_CHECK_M * np.asarray(est.tip_rotation, float)[:, 0]
+    aimed = trunk_point(est.tip_position, est.tip_rotation)
     story.add("probes", None, [{"label": "trunk", "aimed": aimed, "touched": trunk_touch, "t": None}])
     problem = trunk_touch_problem(est.tip_position, est.tip_rotation, trunk_touch)
     if problem is not None:
