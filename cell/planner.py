@@ -322,7 +322,8 @@ class GraspPlan:
 # ------------------------------------------------------------------------------ planning
 def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, limits: SafetyLimits, *,
                ik: IK = ik_nearest, q_start: Any = None, tape_points: Any = None,
-               tape_base: Any = None, tape_surface: Any = None, speeds: "Speeds | None" = None) -> GraspPlan:
+               tape_base: Any = None, tape_surface: Any = None, speeds: "Speeds | None" = None,
+               insets: Any = None) -> GraspPlan:
     """Plan a grasp of the tape at ``tip`` or raise :class:`PlanRefused`.
 
     ik: inverse kinematics (default the UR5e's closed form). q_start (6,): where the arm is
@@ -334,7 +335,9 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     checked against the open fingers on the approach and, with :data:`TAPE_CLEARANCE_M`,
     on the joint moves to the pre-grasp pose. speeds: the approach and lift speeds the plan
     will run at (default :class:`Speeds`), at which no joint may turn faster than
-    ``limits.max_joint_speed`` on a straight segment.
+    ``limits.max_joint_speed`` on a straight segment. insets: the grasp points' distances in
+    from the tip to try [m], in order (default the cell file's inset, then the fallbacks of
+    :data:`EXTRA_INSETS_M`).
 
     Variants, in order: at the cell file's inset, every tilt of
     :data:`APPROACH_TILTS_RAD` and pitch, the jaw either way round; then the body-side
@@ -357,7 +360,9 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     solid = (gripper.check_points_flange(), gripper.shape())     # the same for every variant
     refusals: list[PlanRefused] = []
     primary = 0        # how many refusals are of the first set (the cell file's inset, up to the side)
-    for inset in (params.inset, *(params.inset + d for d in EXTRA_INSETS_M)):
+    if insets is None:
+        insets = grasp_insets(params)
+    for inset in insets:
         grasp_position, grasp_rotation = grasp_frame(tip, inset, params.inset, tape_points)
         for tilts in (APPROACH_TILTS_RAD, BODY_SIDE_TILTS_RAD):
             primary = primary or len(refusals)
@@ -384,6 +389,12 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     shown = next(e for r in ("collision", "unreachable", "limits", None) for e in first if r is None or e.reason == r)
     tally = ", ".join(f"{n} {r}" for r, n in counts.items() if n)
     raise PlanRefused(shown.reason, f"{shown.detail} (all {len(refusals)} approach variants refused: {tally})")
+
+
+def grasp_insets(params: Any) -> tuple[float, ...]:
+    """The grasp points' distances in from the tip [m] :func:`plan_grasp` tries, in order: the
+    cell file's ``inset`` (``params.inset``), then the fallbacks of :data:`EXTRA_INSETS_M`."""
+    return (float(params.inset), *(float(params.inset) + d for d in EXTRA_INSETS_M))
 
 
 def grasp_frame(tip: TipFrame, inset: float, straight: float, tape_points: Any = None) -> tuple[np.ndarray, np.ndarray]:

@@ -188,6 +188,31 @@ def trunk_touch_problem(tip_position: np.ndarray, tip_rotation: np.ndarray, touc
     return None
 
 
+GRASP_CHECKED_M = 0.018
+"""How far in from an end the needle measured its own checks reach [m] (the trunk check's
+stretch, 1.5 TRUNK_CHECK_M). A grasp planned farther in (the planner's fallback insets, where
+no closer grasp passed) holds the tape along a shape the views could not settle and the needle
+did not check: the simulated cell's needle first touches the grasp point
+(``sim.episode._grasp_point_touch``)."""
+GRASP_RECENTRE_M = 0.003
+"""Where the needle finds the tape farther than this from the planned grasp point [m] (along
+the tape's normal, :func:`grasp_point_offset`), the grasp is planned again with the estimated
+tape moved onto the touch, at that inset or farther in; where no plan passes, the episode is
+refused. In the simulated cell the touches of 43 such grasps (probed episodes of 830000-873000,
+20-48 mm in) lay 0.0-7.3 mm off; 868005's, 5.7 mm off with the end's shape 25 deg off there,
+had a pad sweep the tape aside on the approach and close on air. Planned again about the
+touch, it and the 9 others farther than 3 mm off all grasped (one at a farther inset, 38 ->
+48 mm, the part's keep-out box refusing the first)."""
+
+
+def grasp_point_offset(position: np.ndarray, rotation: np.ndarray, touched: np.ndarray) -> np.ndarray:
+    """(3,) [m] the tape's offset from the grasp point ``position`` (frame ``rotation``: trunk,
+    left, normal) where the needle ``touched`` it approaching along the normal: the touch's
+    displacement along the normal (across the tape the needle's approach leaves it unknown)."""
+    normal = np.asarray(rotation, float)[:, 2]
+    return float((np.asarray(touched, float) - np.asarray(position, float)) @ normal) * normal
+
+
 REFIT_TOUCH_MAX_M = 0.012
 """A needle sent to a tip that touched tape farther than PROBE_CONFIRM_M from it, but within
 this [m], refits the shape through the touch (:func:`tapecell.estimator.touch.refit`): the

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import (PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable,
-                                 hypotheses_to_probe, hypothesis)
+from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, PAST_END_MAX_M, PROBE_CONFIRM_M,
+                                 PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis)
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -66,7 +66,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     from .arm import SimArm
     from tapecell.cell.config import CellConfig, load_cell_config
 
-    from tapecell.cell.planner import GraspParams, GripperGeometry, PlanRefused, TipFrame, estimated_surface, plan_grasp
+    from tapecell.cell.planner import (GraspParams, GripperGeometry, PlanRefused, TipFrame, estimated_surface, grasp_insets,
+                                       plan_grasp)
     from tapecell.cell.safety import SafetyLimits
 
     from tapecell.cell.story import Story
@@ -177,6 +178,39 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             return doc
         times["plan"] = time.perf_counter() - t0
         story.add("plan", float(cell.data.time), (plan, q_start, None))
+        if "probe" in times and plan.inset > GRASP_CHECKED_M + 1e-9:
+            # The needle measured the end, but the jaw will hold the tape farther in than it
+            # checked, along a shape the views could not settle: it touches the grasp point,
+            # and the grasp is planned again about the tape it found there.
+            t1 = time.perf_counter()
+            probes = []
+            offset = _grasp_point_touch(cell, sim_arm, est, plan.inset, cfg, probes, doc)
+            story.add("probes", float(cell.data.time), probes)
+            times["probe"] += time.perf_counter() - t1
+            if offset is None:
+                doc.update(failure="estimate rejected",
+                           detail=(f"the needle found no tape at the grasp point {1e3 * plan.inset:.0f} mm in from "
+                                   f"the end it measured"))
+                return doc
+            if float(np.linalg.norm(offset)) > GRASP_RECENTRE_M:
+                t0 = time.perf_counter()
+                try:
+                    tip = TipFrame.from_estimate(est)
+                    plan = plan_grasp(dataclasses.replace(tip, position=tip.position + offset),
+                                      GraspParams.from_config(cfg.grasp),
+                                      GripperGeometry.from_config(cfg.tools.gripper), limits,
+                                      q_start=sim_arm.joints(), tape_points=est.nodes + offset,
+                                      tape_surface=estimated_surface(capture.tape, est.angles) + offset,
+                                      insets=[i for i in grasp_insets(cfg.grasp) if i >= plan.inset - 1e-9],
+                                      tape_base=est.nodes[0])
+                except PlanRefused as e:
+                    times["plan"] += time.perf_counter() - t0
+                    story.add("plan", float(cell.data.time), (None, q_start, e))
+                    doc.update(failure=e.reason, detail=e.detail + " (planned again about the tape the needle "
+                               "touched at the grasp point)")
+                    return doc
+                times["plan"] += time.perf_counter() - t0
+                story.add("plan", float(cell.data.time), (plan, q_start, None))
         # Where the jaw takes the tape: in from the tip [mm], and the approach variant.
         doc["grasp"] = {"inset_mm": round(plan.inset * 1e3, 1),
                         "tilt_deg": round(float(np.degrees(plan.approach_tilt_rad)), 1),
@@ -772,6 +806,22 @@ def _resolve(cfg, path: str) -> Path:
     if not p.is_absolute() and cfg.source:
         p = Path(cfg.source).parent / p
     return p
+
+
+def _grasp_point_touch(cell, sim_arm, est, inset: float, cfg, probes: list, notes: dict) -> np.ndarray | None:
+    """The needle touches the estimated centre line ``inset`` [m] in from the end (the
+    planner's grasp point, :func:`tapecell.cell.planner.grasp_frame`) along the tape's normal
+    there; returns the tape's offset from that point (:func:`tapecell.cell.probe.grasp_point_offset`,
+    (3,) [m]; None: no tape touched); the touch's distance also in ``notes["probed_grasp_mm"]``."""
+    from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame
+    from tapecell.cell.probe import grasp_point_offset
+
+    position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
+                                     est.nodes)
+    with _Needle(cell, sim_arm, probes, notes) as needle:
+        hit = needle.touch("grasp point", position, rotation)
+    notes["probed_grasp_mm"] = None if hit is None else round(1e3 * hit[0], 2)
+    return None if hit is None else grasp_point_offset(position, rotation, hit[1])
 
 
 def _execute_and_check(cell, sim_arm, plan, limits, motion) -> EpisodeOutcome:

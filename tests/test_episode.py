@@ -334,6 +334,28 @@ def test_an_end_the_model_does_not_explain_is_measured_by_the_needle(capsys):
     assert end_to_measure(est(Verdict.POOR_FIT, f"view 0 {END_UNEXPLAINED}", ("another shape",)))
 
 
+def test_a_far_grasp_on_a_needle_measured_end_is_planned_about_the_tape_the_needle_touches(capsys):
+    """Seed 868005: the estimate is "hidden"; the needle walks its end 9 mm on and checks the
+    corners and the trunk. Every grasp near the end is refused; the planner falls back to 20 mm
+    in, beyond what the needle checked, where the estimated shape lies 5.7 mm off the tape
+    (its end's trunk 25 deg off): planned there, a pad swept the tape aside on the approach and
+    the jaw closed on air. The needle touches that grasp point first, and the grasp is planned
+    again about the tape it found there: the jaw takes the tape."""
+    from tapecell.cell.probe import GRASP_CHECKED_M, GRASP_RECENTRE_M, grasp_point_offset
+
+    code = main(["episode", "--seed", "868005"])
+    out, err = capsys.readouterr()
+    doc = json.loads(out)
+    assert code == 0, err
+    assert doc["verdict_reason"].startswith("hypothesis 0's end measured by the needle")
+    assert doc["grasp"]["inset_mm"] > 1e3 * GRASP_CHECKED_M
+    assert doc["probed_grasp_mm"] > 1e3 * GRASP_RECENTRE_M
+    assert doc["outcome"] == "grasped", doc
+    # The offset is the touch's displacement along the tape's normal only.
+    R = np.eye(3)[:, [1, 2, 0]]
+    assert np.allclose(grasp_point_offset(np.zeros(3), R, np.array([0.002, 0.001, -0.004])), [0.002, 0, 0])
+
+
 def test_episode_recording_shows_its_content_on_opening(tmp_path):
     """The real rerun viewer, opened on an episode's recording, shows the camera images and
     the 3-D scene at once (about 2 % of the screen was bright when everything was logged off

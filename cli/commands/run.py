@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -28,8 +29,12 @@ the tip there. A touch that confirms nothing but lies 4-12 mm from exactly one t
 that shape through it (kept when it still explains the views); elsewhere nothing moves. Then
 you put the needle on the tape's centre line about 12 mm back from its end, where the pads
 will hold it: that touch must lie 6-18 mm back along the settled end's trunk and bend off it
-by at most 30 deg, else nothing moves (the trunk check). Any other
-"poor_fit" is refused: the model does not explain what was seen.
+by at most 30 deg, else nothing moves (the trunk check). Where the plan then holds the tape
+more than 18 mm in from that end (the planner's fallbacks, when no grasp nearer the end
+passes), you also put the needle on the tape's middle at the grasp point: tape more than 3 mm
+off the estimate along its normal there has the grasp planned again about it (at that inset
+or farther in), and a touch more than 10 mm across the tape from the point moves nothing.
+Any other "poor_fit" is refused: the model does not explain what was seen.
 
 Nothing moves without --execute. With --execute the robot's address and the plan are
 shown and you type 'yes' on the terminal BEFORE any connection is opened (--yes answers
@@ -109,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
     from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, Speeds, TipFrame, estimated_surface,
                                        execute_plan, plan_grasp)
     from tapecell.cell.safety import SafetyLimits
+    from tapecell.cell import probe
     from tapecell.cell.probe import end_measurable, hypotheses_to_probe
     from tapecell.cell.story import Story
 
@@ -150,15 +156,29 @@ def run(args: argparse.Namespace) -> int:
             story.add("estimate", None, (capture, est), "after probing")
             result["verdict"] = est.verdict.value
             print(f"estimate after probing: {est.verdict_reason}")
+            probed = True
+        else:
+            probed = False
+        # The estimated tape moved onto the needle's touch at a far grasp point, and the
+        # insets then tried (see _grasp_point_checked); none: as estimated.
+        shift, insets = np.zeros(3), None
 
         def make_plan(q_start, ik=None):
             kw = {} if ik is None else {"ik": ik}
-            return plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),
-                              GripperGeometry.from_config(cfg.tools.gripper), limits,
-                              q_start=q_start, tape_points=est.nodes,
-                              tape_surface=estimated_surface(capture.tape, est.angles), **kw)
+            tip = TipFrame.from_estimate(est)
+            return plan_grasp(dataclasses.replace(tip, position=tip.position + shift),
+                              GraspParams.from_config(cfg.grasp), GripperGeometry.from_config(cfg.tools.gripper),
+                              limits, q_start=q_start, tape_points=est.nodes + shift, tape_base=est.nodes[0],
+                              tape_surface=estimated_surface(capture.tape, est.angles) + shift, insets=insets, **kw)
 
         shown = make_plan(None)
+        if probed and shown.inset > probe.GRASP_CHECKED_M + 1e-9:
+            # The jaw would hold the tape farther in than the needle checked: the operator
+            # touches the grasp point, and the grasp is planned again about the tape there.
+            moved = _grasp_point_checked(cfg, est, shown.inset, story, args.yes)
+            if moved is not None:
+                shift, insets = moved
+                shown = make_plan(None)
         story.add("plan", None, (shown, REFERENCE_JOINTS, None))
         print(shown.describe())
         if not args.execute:
@@ -235,6 +255,55 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
                          f"within {PROBE_CONFIRM_M * 1e3:.0f} mm, the only one so near and clearly the closest); nothing moved")
     reason = f"hypothesis {k} confirmed by the needle ({1e3 * distances[k]:.1f} mm from its tip)"
     return _trunk_checked(adopt(est, k, capture.tape, reason), trunk_touch, story)
+
+
+GRASP_TOUCH_ACROSS_M = 0.010
+"""The operator's touch at a far grasp point (:func:`_grasp_point_checked`) must lie within
+this of the point across the tape's normal [m] (half the tape's 30 mm width, less a margin):
+farther, it says nothing of the tape where the jaw will hold it."""
+
+
+def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, log=print):
+    """For a grasp planned ``inset`` [m] in from an end the needle settled, farther in than
+    its checks reached (:data:`tapecell.cell.probe.GRASP_CHECKED_M`): freedrive, the operator
+    puts the needle on the tape's centre line at the grasp point. Returns None when the tape
+    there is within GRASP_RECENTRE_M of the estimate along its normal, else (the offset (3,)
+    [m] to move the estimated tape by, the insets to plan at: this one or farther in), as the
+    simulated cell does; raises :class:`TaskFailed` (nothing moved but by hand) when the touch
+    is skipped or lies more than GRASP_TOUCH_ACROSS_M across the tape from the point."""
+    from tapecell.cell import probe
+    from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame, grasp_insets
+    from tapecell.cell.ur import URArm
+
+    position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
+                                     est.nodes)
+    where = ", ".join(f"{v * 1e3:.1f}" for v in position)
+    label = f"middle {inset * 1e3:.0f} mm in from its end, where the jaw will hold it (about [{where}] mm)"
+    confirm_robot(cfg.robot.host, cfg.robot.port, [
+        f"the grasp holds the tape {inset * 1e3:.0f} mm in from its end, farther in than the needle checked: start "
+        "freedrive (teach mode) again; the arm follows your hand, making no motion of its own",
+        f"record the needle tip when you press Enter with it on the tape's {label}; freedrive then ends",
+        "then plan the grasp about the tape there, show it and ask again before moving"], yes)
+    arm = URArm.from_config(cfg, cfg.tools.needle.flange_from_tcp)
+    try:
+        with arm:
+            points = probe.guided_probe(arm, cfg.tools.needle.flange_from_tcp, [label], prompt, log)
+    except probe.ProbeError:
+        raise TaskFailed("the needle was not put on the tape where the jaw will hold it (needed for a grasp "
+                         f"{inset * 1e3:.0f} mm in from the end); nothing moved") from None
+    touched = np.asarray(points[0].position, float)
+    story.add("probes", None, [{"label": "grasp point", "aimed": position, "touched": touched, "t": None}])
+    offset = probe.grasp_point_offset(position, rotation, touched)
+    across = float(np.linalg.norm(touched - position - offset))
+    if across > GRASP_TOUCH_ACROSS_M:
+        raise TaskFailed(f"the needle's touch is {across * 1e3:.1f} mm from the grasp point across the tape (at most "
+                         f"{GRASP_TOUCH_ACROSS_M * 1e3:.0f} mm: it must be on the tape's middle there); nothing moved")
+    if float(np.linalg.norm(offset)) <= probe.GRASP_RECENTRE_M:
+        log(f"grasp point: the tape is {np.linalg.norm(offset) * 1e3:.1f} mm from the estimate there; planned as it was")
+        return None
+    log(f"grasp point: the tape is {np.linalg.norm(offset) * 1e3:.1f} mm off the estimate there; the grasp is planned "
+        "again about it")
+    return offset, [i for i in grasp_insets(cfg.grasp) if i >= inset - 1e-9]
 
 
 def _touch_end(cfg, yes: bool, what: str, then: str, prompt=None, log=print) -> tuple[np.ndarray, np.ndarray]:
