@@ -187,15 +187,13 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             offset = _grasp_point_touch(cell, sim_arm, est, plan.inset, cfg, probes, doc)
             story.add("probes", float(cell.data.time), probes)
             times["probe"] += time.perf_counter() - t1
-            if offset is None:
-                doc.update(failure="estimate rejected",
-                           detail=(f"the needle found no tape at the grasp point {1e3 * plan.inset:.0f} mm in from "
-                                   f"the end it measured"))
+            if isinstance(offset, str):
+                doc.update(failure="estimate rejected", detail=offset)
                 return doc
             if float(np.linalg.norm(offset)) > GRASP_RECENTRE_M:
                 t0 = time.perf_counter()
+                tip = TipFrame.from_estimate(est)
                 try:
-                    tip = TipFrame.from_estimate(est)
                     plan = plan_grasp(dataclasses.replace(tip, position=tip.position + offset),
                                       GraspParams.from_config(cfg.grasp),
                                       GripperGeometry.from_config(cfg.tools.gripper), limits,
@@ -808,20 +806,40 @@ def _resolve(cfg, path: str) -> Path:
     return p
 
 
-def _grasp_point_touch(cell, sim_arm, est, inset: float, cfg, probes: list, notes: dict) -> np.ndarray | None:
+def _grasp_point_touch(cell, sim_arm, est, inset: float, cfg, probes: list, notes: dict) -> str | np.ndarray:
     """The needle touches the estimated centre line ``inset`` [m] in from the end (the
-    planner's grasp point, :func:`tapecell.cell.planner.grasp_frame`) along the tape's normal
-    there; returns the tape's offset from that point (:func:`tapecell.cell.probe.grasp_point_offset`,
-    (3,) [m]; None: no tape touched); the touch's distance also in ``notes["probed_grasp_mm"]``."""
+    planner's grasp point, :func:`tapecell.cell.planner.grasp_frame`) and GRASP_STATION_M
+    either side of it along the trunk, each along the tape's normal
+    (:func:`tapecell.cell.probe.grasp_station`). Returns the tape's offset from the grasp point
+    (3,) [m], or why the grasp is refused. ``notes``: ``probed_grasp_mm`` the touches'
+    distances [mm] (the grasp point's first, then towards the base and past it),
+    ``probed_grasp_off`` the offset [mm] and the turn [deg]."""
     from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame
-    from tapecell.cell.probe import grasp_point_offset
+    from tapecell.cell.probe import GRASP_STATION_M, GRASP_TURN_MAX_DEG, grasp_station
 
     position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
                                      est.nodes)
+    touched = {}
     with _Needle(cell, sim_arm, probes, notes) as needle:
-        hit = needle.touch("grasp point", position, rotation)
-    notes["probed_grasp_mm"] = None if hit is None else round(1e3 * hit[0], 2)
-    return None if hit is None else grasp_point_offset(position, rotation, hit[1])
+        for k, label in ((0, "grasp point"), (-1, "before the grasp point"), (1, "past the grasp point")):
+            hit = needle.touch(label, position + k * GRASP_STATION_M * rotation[:, 0], rotation)
+            touched[k] = None if hit is None else hit[1]
+            notes.setdefault("probed_grasp_mm", []).append(None if hit is None else round(1e3 * hit[0], 2))
+            if hit is None:
+                break
+    where = f"{1e3 * inset:.0f} mm in from the end it measured"
+    if touched[0] is None:
+        return f"the needle found no tape at the grasp point {where}"
+    offset, turn = grasp_station(position, rotation, touched)
+    notes["probed_grasp_off"] = {"mm": round(1e3 * float(np.linalg.norm(offset)), 2),
+                                 "deg": None if turn is None else round(turn, 1)}
+    if turn is None:
+        return (f"the needle found no tape {1e3 * GRASP_STATION_M:.0f} mm from the grasp point {where} along the "
+                f"estimated tape: the pads would not hold it square")
+    if turn > GRASP_TURN_MAX_DEG:
+        return (f"the tape at the grasp point {where} turns {turn:.0f} deg off the estimate (> "
+                f"{GRASP_TURN_MAX_DEG:.0f} deg): the pads would not hold it square")
+    return offset
 
 
 def _execute_and_check(cell, sim_arm, plan, limits, motion) -> EpisodeOutcome:

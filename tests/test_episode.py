@@ -341,7 +341,7 @@ def test_a_far_grasp_on_a_needle_measured_end_is_planned_about_the_tape_the_need
     (its end's trunk 25 deg off): planned there, a pad swept the tape aside on the approach and
     the jaw closed on air. The needle touches that grasp point first, and the grasp is planned
     again about the tape it found there: the jaw takes the tape."""
-    from tapecell.cell.probe import GRASP_CHECKED_M, GRASP_RECENTRE_M, grasp_point_offset
+    from tapecell.cell.probe import GRASP_CHECKED_M, GRASP_RECENTRE_M, GRASP_STATION_M, grasp_station
 
     code = main(["episode", "--seed", "868005"])
     out, err = capsys.readouterr()
@@ -349,11 +349,17 @@ def test_a_far_grasp_on_a_needle_measured_end_is_planned_about_the_tape_the_need
     assert code == 0, err
     assert doc["verdict_reason"].startswith("hypothesis 0's end measured by the needle")
     assert doc["grasp"]["inset_mm"] > 1e3 * GRASP_CHECKED_M
-    assert doc["probed_grasp_mm"] > 1e3 * GRASP_RECENTRE_M
+    assert len(doc["probed_grasp_mm"]) == 3 and doc["probed_grasp_off"]["mm"] > 1e3 * GRASP_RECENTRE_M
     assert doc["outcome"] == "grasped", doc
-    # The offset is the touch's displacement along the tape's normal only.
-    R = np.eye(3)[:, [1, 2, 0]]
-    assert np.allclose(grasp_point_offset(np.zeros(3), R, np.array([0.002, 0.001, -0.004])), [0.002, 0, 0])
+    # What the touches say: the offset along the normal at the grasp point, the turn of the
+    # line through the three about the tape's width.
+    R = np.eye(3)[:, [1, 2, 0]]                      # trunk y, left z, normal x
+    step = GRASP_STATION_M
+    touched = {0: np.array([0.002, 0.001, -0.004]), -1: np.array([0.002 - step, -step, 0.0]),
+               1: np.array([0.002 + step, step, 0.0])}
+    offset, turn = grasp_station(np.zeros(3), R, touched)
+    assert np.allclose(offset, [0.002, 0, 0]) and turn == pytest.approx(45.0)
+    assert grasp_station(np.zeros(3), R, {0: touched[0], -1: None, 1: touched[1]})[1] is None
 
 
 def test_episode_recording_shows_its_content_on_opening(tmp_path):

@@ -268,8 +268,8 @@ def _ambiguous_with_alternative(monkeypatch, offset_m):
 def _guide_needle_to(robot, target, monkeypatch, behind=None, grasp=None):
     """Every prompt answers Enter after 'guiding' the arm so the needle tip is at ``target``
     (what an operator does in freedrive), or, asked for the centre line behind the end, at
-    ``behind`` (3,) [m] (a string: that answer, e.g. "s" to skip the point), or, asked for
-    the point where the jaw will hold the tape, at ``grasp`` (3,) [m]."""
+    ``behind`` (3,) [m] (a string: that answer, e.g. "s" to skip the point), or, asked for a
+    point whose prompt holds a key of ``grasp``, at that key's point (3,) [m]."""
     import numpy as np
 
     from tapecell.cell.kinematics import ik_nearest
@@ -286,8 +286,9 @@ def _guide_needle_to(robot, target, monkeypatch, behind=None, grasp=None):
             if "centre line" in prompt and isinstance(behind, str):
                 return behind                                             # e.g. "s": skipped
             world_from_needle[:3, 3] = behind if "centre line" in prompt and behind is not None else target
-            if "jaw will hold" in prompt and grasp is not None:
-                world_from_needle[:3, 3] = grasp
+            for key, point in (grasp or {}).items():
+                if key in prompt:
+                    world_from_needle[:3, 3] = point
             robot.q = ik_nearest(world_from_needle @ invert(needle), robot.q)
         return ""
     monkeypatch.setattr("builtins.input", ask)
@@ -355,14 +356,16 @@ def test_probe_whose_trunk_touch_fails_moves_nothing(real_like, monkeypatch, cap
     assert "teachMode" in names and names.index("teachMode") < names.index("endTeachMode")
 
 
-@pytest.mark.parametrize("off_m, across_m", [(0.005, 0.0), (0.001, 0.0), (0.0, 0.02)])
+@pytest.mark.parametrize("off_m, across_m, rise_m", [(0.005, 0.0, 0.0), (0.001, 0.0, 0.002), (0.0, 0.02, 0.0),
+                                                     (0.002, 0.0, 0.008)])
 def test_a_grasp_farther_in_than_the_needle_checked_touches_the_grasp_point_first(real_like, monkeypatch, capsys,
-                                                                                   off_m, across_m):
+                                                                                   off_m, across_m, rise_m):
     """--execute --probe, with the needle's checks taken to reach only 4 mm in from the end
     (GRASP_CHECKED_M; 18 mm in the cell), so that the usual grasp 8 mm in lies beyond them:
-    after settling the end, the operator also touches the grasp point. Tape 5 mm off the
-    estimate along its normal there: the grasp is planned again about it, then run; 1 mm off:
-    planned as it was; a touch 20 mm across the tape from the point: refused, nothing moved."""
+    after settling the end, the operator also touches the tape where the jaw will hold it and
+    6 mm either side. Tape 5 mm off the estimate along its normal there: the grasp is planned
+    again about it, then run; 1 mm off, 19 deg turned: planned as it was; a touch 20 mm across
+    the tape from the grasp point, or the tape turned 53 deg there: refused, nothing moved."""
     import numpy as np
     from fakes import FakeRobot, install_fake_rtde
 
@@ -379,15 +382,20 @@ def test_a_grasp_farther_in_than_the_needle_checked_touches_the_grasp_point_firs
 
     truth = real_estimate(grab_capture(load_cell_config(), load_cameras(cameras), images))
     position, R = grasp_frame(TipFrame.from_estimate(truth), 0.008, 0.008, truth.nodes)
+    at = position + off_m * R[:, 2]
     prompts = _guide_needle_to(robot, truth.tip_position, monkeypatch, _behind(truth),
-                               grasp=position + off_m * R[:, 2] + across_m * R[:, 1])
+                               grasp={"where the jaw": at + across_m * R[:, 1],
+                                      "farther from the end": at - 0.006 * R[:, 0] - rise_m * R[:, 2],
+                                      "nearer the end": at + 0.006 * R[:, 0] + rise_m * R[:, 2]})
     code = main(["run", "--config", str(default_cell_path()), "--cameras", str(cameras), "--images", str(images),
                  "--execute", "--probe", "--yes"])
     out, err = capsys.readouterr()
-    assert any("where the jaw will hold it" in p for p in prompts)
+    assert sum("mm in from its end" in p for p in prompts) == 3
     names = [c[0] for c in robot.log]
-    if across_m:
-        assert code == 1 and "20.0 mm from the grasp point across the tape" in err.strip().splitlines()[-1]
+    if across_m or rise_m > 0.005:
+        last = err.strip().splitlines()[-1]
+        assert code == 1 and ("20.0 mm from that point across the tape" in last if across_m else
+                              "turns 53 deg off the estimate (> 30 deg)" in last), last
         assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
         return
     assert code == 0, err

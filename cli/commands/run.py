@@ -31,9 +31,10 @@ you put the needle on the tape's centre line about 12 mm back from its end, wher
 will hold it: that touch must lie 6-18 mm back along the settled end's trunk and bend off it
 by at most 30 deg, else nothing moves (the trunk check). Where the plan then holds the tape
 more than 18 mm in from that end (the planner's fallbacks, when no grasp nearer the end
-passes), you also put the needle on the tape's middle at the grasp point: tape more than 3 mm
-off the estimate along its normal there has the grasp planned again about it (at that inset
-or farther in), and a touch more than 10 mm across the tape from the point moves nothing.
+passes), you also put the needle on the tape's middle at the grasp point and 6 mm either side
+of it: tape more than 3 mm off the estimate along its normal there has the grasp planned again
+about it (at that inset or farther in); a touch skipped or more than 10 mm across the tape
+from its point, or tape turned more than 30 deg off the estimate there, moves nothing.
 Any other "poor_fit" is refused: the model does not explain what was seen.
 
 Nothing moves without --execute. With --execute the robot's address and the plan are
@@ -258,50 +259,64 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
 
 
 GRASP_TOUCH_ACROSS_M = 0.010
-"""The operator's touch at a far grasp point (:func:`_grasp_point_checked`) must lie within
-this of the point across the tape's normal [m] (half the tape's 30 mm width, less a margin):
-farther, it says nothing of the tape where the jaw will hold it."""
+"""The operator's touches at a far grasp point (:func:`_grasp_point_checked`) must each lie
+within this of the point aimed at, across the tape's normal [m] (half the tape's 30 mm width,
+less a margin): farther, they say nothing of the tape where the jaw will hold it."""
 
 
 def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, log=print):
     """For a grasp planned ``inset`` [m] in from an end the needle settled, farther in than
-    its checks reached (:data:`tapecell.cell.probe.GRASP_CHECKED_M`): freedrive, the operator
-    puts the needle on the tape's centre line at the grasp point. Returns None when the tape
-    there is within GRASP_RECENTRE_M of the estimate along its normal, else (the offset (3,)
-    [m] to move the estimated tape by, the insets to plan at: this one or farther in), as the
-    simulated cell does; raises :class:`TaskFailed` (nothing moved but by hand) when the touch
-    is skipped or lies more than GRASP_TOUCH_ACROSS_M across the tape from the point."""
+    its checks reached (:data:`tapecell.cell.probe.GRASP_CHECKED_M`), the simulated cell's
+    rule with the operator's hand: freedrive, the needle on the tape's middle at the grasp
+    point and GRASP_STATION_M either side of it (:func:`tapecell.cell.probe.grasp_station`).
+    Returns None when the tape at the grasp point is within GRASP_RECENTRE_M of the estimate
+    along its normal, else (the offset (3,) [m] to move the estimated tape by, the insets to
+    plan at: this one or farther in); raises :class:`TaskFailed` (nothing moved but by hand)
+    when a touch is skipped, lies more than GRASP_TOUCH_ACROSS_M across the tape from its
+    point, or the tape there turns more than GRASP_TURN_MAX_DEG off the estimate."""
     from tapecell.cell import probe
     from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame, grasp_insets
     from tapecell.cell.ur import URArm
 
     position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
                                      est.nodes)
+    step = probe.GRASP_STATION_M
     where = ", ".join(f"{v * 1e3:.1f}" for v in position)
-    label = f"middle {inset * 1e3:.0f} mm in from its end, where the jaw will hold it (about [{where}] mm)"
+    labels = {0: f"middle where the jaw will hold it, {inset * 1e3:.0f} mm in from its end (about [{where}] mm)",
+              -1: f"middle {(inset + step) * 1e3:.0f} mm in from its end, {step * 1e3:.0f} mm farther from the end",
+              1: f"middle {(inset - step) * 1e3:.0f} mm in from its end, {step * 1e3:.0f} mm nearer the end"}
     confirm_robot(cfg.robot.host, cfg.robot.port, [
         f"the grasp holds the tape {inset * 1e3:.0f} mm in from its end, farther in than the needle checked: start "
         "freedrive (teach mode) again; the arm follows your hand, making no motion of its own",
-        f"record the needle tip when you press Enter with it on the tape's {label}; freedrive then ends",
+        f"record the needle tip when you press Enter with it on the tape's middle where the jaw will hold it, then "
+        f"{step * 1e3:.0f} mm farther from the end, then {step * 1e3:.0f} mm nearer it; freedrive then ends",
         "then plan the grasp about the tape there, show it and ask again before moving"], yes)
     arm = URArm.from_config(cfg, cfg.tools.needle.flange_from_tcp)
-    try:
-        with arm:
-            points = probe.guided_probe(arm, cfg.tools.needle.flange_from_tcp, [label], prompt, log)
-    except probe.ProbeError:
-        raise TaskFailed("the needle was not put on the tape where the jaw will hold it (needed for a grasp "
-                         f"{inset * 1e3:.0f} mm in from the end); nothing moved") from None
-    touched = np.asarray(points[0].position, float)
-    story.add("probes", None, [{"label": "grasp point", "aimed": position, "touched": touched, "t": None}])
-    offset = probe.grasp_point_offset(position, rotation, touched)
-    across = float(np.linalg.norm(touched - position - offset))
-    if across > GRASP_TOUCH_ACROSS_M:
-        raise TaskFailed(f"the needle's touch is {across * 1e3:.1f} mm from the grasp point across the tape (at most "
-                         f"{GRASP_TOUCH_ACROSS_M * 1e3:.0f} mm: it must be on the tape's middle there); nothing moved")
-    if float(np.linalg.norm(offset)) <= probe.GRASP_RECENTRE_M:
-        log(f"grasp point: the tape is {np.linalg.norm(offset) * 1e3:.1f} mm from the estimate there; planned as it was")
+    with arm:
+        points = {p.label: p.position for p in probe.guided_probe(arm, cfg.tools.needle.flange_from_tcp,
+                                                                  list(labels.values()), prompt, log)}
+    if any(label not in points for label in labels.values()):
+        raise TaskFailed("the needle was not put on the tape at all three points where the jaw will hold it (needed "
+                         f"for a grasp {inset * 1e3:.0f} mm in from the end); nothing moved")
+    touched = {k: np.asarray(points[label], float) for k, label in labels.items()}
+    aimed = {k: position + k * step * rotation[:, 0] for k in labels}
+    story.add("probes", None, [{"label": labels[k], "aimed": aimed[k], "touched": touched[k], "t": None}
+                               for k in labels])
+    for k in labels:
+        v = touched[k] - aimed[k]
+        across = float(np.linalg.norm(v - (v @ rotation[:, 2]) * rotation[:, 2]))
+        if across > GRASP_TOUCH_ACROSS_M:
+            raise TaskFailed(f"the needle's touch on the tape's {labels[k]} is {across * 1e3:.1f} mm from that point "
+                             f"across the tape (at most {GRASP_TOUCH_ACROSS_M * 1e3:.0f} mm); nothing moved")
+    offset, turn = probe.grasp_station(position, rotation, touched)
+    off = float(np.linalg.norm(offset)) * 1e3
+    if turn > probe.GRASP_TURN_MAX_DEG:
+        raise TaskFailed(f"the tape where the jaw will hold it turns {turn:.0f} deg off the estimate (> "
+                         f"{probe.GRASP_TURN_MAX_DEG:.0f} deg): the pads would not hold it square; nothing moved")
+    if off <= probe.GRASP_RECENTRE_M * 1e3:
+        log(f"grasp point: the tape is {off:.1f} mm from the estimate there, {turn:.0f} deg off; planned as it was")
         return None
-    log(f"grasp point: the tape is {np.linalg.norm(offset) * 1e3:.1f} mm off the estimate there; the grasp is planned "
+    log(f"grasp point: the tape is {off:.1f} mm off the estimate there, {turn:.0f} deg off; the grasp is planned "
         "again about it")
     return offset, [i for i in grasp_insets(cfg.grasp) if i >= inset - 1e-9]
 
