@@ -53,8 +53,8 @@ from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
 from .tape import forward_kinematics
-from .verdict import (DISTINCT_TIP_M, END_FOLD_DEG, FOLD_DEG, assess, end_on, is_close_alternative, mask_fault,
-                      rival_reason)
+from .verdict import (DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess, edgewise_bend, end_on,
+                      is_close_alternative, mask_fault, rival_reason)
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -223,7 +223,13 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
                [(a.cost, a.tip_position) for a in near])
-    return j.verdict, j.reason, j.tip_views, tuple(near), j.offsets_px
+    verdict, reason = j.verdict, j.reason
+    bend, joint = edgewise_bend(shape.frames)
+    if verdict is Verdict.OK and bend > EDGEWISE_MAX_DEG:
+        # A tape hardly bends within its own plane: no tape takes this shape.
+        verdict, reason = Verdict.POOR_FIT, (f"the shape {EDGEWISE} by {bend:.0f} deg at joint {joint} (> "
+                                             f"{EDGEWISE_MAX_DEG:g} deg): not a shape a tape takes")
+    return verdict, reason, j.tip_views, tuple(near), j.offsets_px
 
 
 def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
@@ -263,8 +269,11 @@ def _rivals_kept(first: Estimate, second: Estimate) -> Estimate:
     0.043, had lost it). The margin is taken on the answer's own cost (its output chain's),
     which may be above the plate fit's cost the verdict weighs alternatives against: the
     rule errs towards "ambiguous". The answer's own alternatives are not kept: an "ok"
-    answer has none within the margin."""
-    if second.verdict is not Verdict.OK:
+    answer has none within the margin. An answer refused only for bending within the tape's
+    plane (verdict.EDGEWISE_MAX_DEG) is weighed so too: the rival may be the tape (866008's
+    24 mm-off answer bends 54 deg edgewise; its rival, 3.5 mm off, is the needle's to check)."""
+    if second.verdict is not Verdict.OK and not (second.verdict is Verdict.POOR_FIT
+                                                 and EDGEWISE in second.verdict_reason):
         return second
     rivals = tuple(a for a in first.alternatives
                    if rival_reason(second.cost, second.tip_position, [(a.cost, a.tip_position)]))
