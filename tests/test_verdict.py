@@ -45,8 +45,9 @@ def test_a_shape_bent_within_the_tapes_plane_is_not_ok(seed):
 
 
 def test_edgewise_bend_of_a_plate_chain():
-    """verdict.edgewise_bend: an in-plane bend of 0.5 rad at the third joint is 28.6 deg
-    edgewise there; the same bend out of the plane (flatwise) is not edgewise at all."""
+    """verdict.edgewise_bend: an in-plane bend of 0.5 rad at joint 2 is 28.6 deg edgewise
+    there; the same bend out of the plane (flatwise) is not edgewise at all; at the last joint
+    (the tip's plate, pulled towards the strip's tip frame) it is not counted."""
     from tapecell.estimator import forward_kinematics
     from tapecell.estimator.verdict import edgewise_bend
 
@@ -58,6 +59,9 @@ def test_edgewise_bend_of_a_plate_chain():
     flat = np.zeros((spec.n, 3))
     flat[2, 1] = 0.5
     assert edgewise_bend(forward_kinematics(spec, flat).frames)[0] == pytest.approx(0.0, abs=1e-6)
+    last = np.zeros((spec.n, 3))
+    last[-1, 2] = 0.5
+    assert edgewise_bend(forward_kinematics(spec, last).frames)[0] == pytest.approx(0.0, abs=1e-6)
 
 
 @pytest.mark.parametrize("seed", [4100, 4101, 4102])
