@@ -195,23 +195,27 @@ no closer grasp passed) holds the tape along a shape the views could not settle 
 did not check: the simulated cell's needle first touches the grasp point
 (``sim.episode._grasp_point_touch``)."""
 GRASP_RECENTRE_M = 0.003
+GRASP_SHIFT_MAX_M = 0.010
 GRASP_STATION_M = 0.006
 GRASP_TURN_MAX_DEG = 30.0
 """The needle touches the grasp point and the centre line GRASP_STATION_M [m] either side of
 it along the estimated trunk (where the pads, 12 mm long, will hold the tape), each along the
 estimated normal (:func:`grasp_station`). Where the tape at the grasp point lies more than
 GRASP_RECENTRE_M [m] off the estimate along its normal, the grasp is planned again with the
-estimated tape moved onto the touch, at that inset or farther in. Where a touch finds no tape,
-or the line through the three turns more than GRASP_TURN_MAX_DEG off the estimated trunk about
-the tape's width, or no plan passes, the episode is refused: the pads would hold the tape
-across their edges. In the simulated cell the grasp points of 43 such grasps (probed episodes
+estimated tape moved onto the touch (the whole estimate, its measured end too: a
+simplification), at that inset or farther in within the touched stretch (up to
+GRASP_STATION_M farther). Where a touch finds no tape, the tape lies more than
+GRASP_SHIFT_MAX_M off, the line through the outer touches turns more than GRASP_TURN_MAX_DEG
+off the estimated trunk about the tape's width, or no plan passes, the grasp is refused: the
+pads would hold the tape across their edges, or where the needle did not touch it. In the simulated cell the grasp points of 43 such grasps (probed episodes
 of 830000-873000, 20-48 mm in) were touched 0.0-7.3 mm off, their lines 0-26 deg off. Two
 failed as planned: 868005 (5.7 mm and 26 deg off: a pad swept the tape aside on the approach
 and the jaw closed on air), which grasps when planned about the touch, as the 9 others more
 than 3 mm off still do; and 874132 (8.5 mm off, the tape 49 deg off the estimate, no tape
 touched 6 mm farther in: planned about the touch, the pads held the tape on their edges and
 it slipped on the lift), now refused. Turning the estimate onto the touched line, instead of
-refusing, made three of those grasps refusals (collisions) and one a slip."""
+refusing, made three of those grasps refusals (collisions) and one a slip. One of the 43,
+864185, found a plan only 10 mm farther in than its touches (48 mm): it is refused now."""
 
 
 def grasp_station(position: np.ndarray, rotation: np.ndarray, touched: dict) -> tuple[np.ndarray, float | None]:
@@ -220,18 +224,23 @@ def grasp_station(position: np.ndarray, rotation: np.ndarray, touched: dict) -> 
     touch is missing) from the needle's touches at a grasp point (frame ``rotation``: trunk,
     left, normal). ``touched``: the touched points (3,) [m] keyed -1, 0, 1 (GRASP_STATION_M
     towards the base along the trunk, at the grasp point, past it), each approached along the
-    normal; 0 must be there. Only their displacements along the normal count (the needle's
-    approach leaves the rest unknown)."""
+    normal; 0 must be there. The turn is that of the line through the outer two in the
+    trunk-normal plane (over 90 deg when they lie the wrong way round); the offset is the
+    middle one's displacement along the normal (the needle's approach leaves the rest
+    unknown)."""
     R = np.asarray(rotation, float)
     p = np.asarray(position, float)
     trunk, normal = R[:, 0], R[:, 2]
 
     def along(k: int) -> float:
-        return float((np.asarray(touched[k], float) - p - k * GRASP_STATION_M * trunk) @ normal)
+        return float((np.asarray(touched[k], float) - p) @ normal)
 
     turn = None
     if touched.get(-1) is not None and touched.get(1) is not None:
-        turn = float(np.degrees(abs(np.arctan2(along(1) - along(-1), 2 * GRASP_STATION_M))))
+        # The line's run along the trunk is where the two outer touches are (a hand puts
+        # them a few mm from the points aimed at; touches on the wrong sides turn it round).
+        run = float((np.asarray(touched[1], float) - np.asarray(touched[-1], float)) @ trunk)
+        turn = float(np.degrees(np.arctan2(abs(along(1) - along(-1)), run)))
     return along(0) * normal, turn
 
 

@@ -269,11 +269,10 @@ def _rivals_kept(first: Estimate, second: Estimate) -> Estimate:
     0.043, had lost it). The margin is taken on the answer's own cost (its output chain's),
     which may be above the plate fit's cost the verdict weighs alternatives against: the
     rule errs towards "ambiguous". The answer's own alternatives are not kept: an "ok"
-    answer has none within the margin. An answer refused only for bending within the tape's
-    plane (verdict.EDGEWISE_MAX_DEG) is weighed so too: the rival may be the tape (866008's
-    24 mm-off answer bends 54 deg edgewise; its rival, 3.5 mm off, is the needle's to check)."""
-    if second.verdict is not Verdict.OK and not (second.verdict is Verdict.POOR_FIT
-                                                 and EDGEWISE in second.verdict_reason):
+    answer has none within the margin. (An answer refused for bending within the tape's
+    plane, verdict.EDGEWISE_MAX_DEG, stays refused: made ambiguous, the needle could confirm
+    its tip and a robot act on a shape no tape takes.)"""
+    if second.verdict is not Verdict.OK:
         return second
     rivals = tuple(a for a in first.alternatives
                    if rival_reason(second.cost, second.tip_position, [(a.cost, a.tip_position)]))

@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, PAST_END_MAX_M, PROBE_CONFIRM_M,
-                                 PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis)
+from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, GRASP_STATION_M, PAST_END_MAX_M,
+                                 PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis)
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -199,7 +199,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
                                       GripperGeometry.from_config(cfg.tools.gripper), limits,
                                       q_start=sim_arm.joints(), tape_points=est.nodes + offset,
                                       tape_surface=estimated_surface(capture.tape, est.angles) + offset,
-                                      insets=[i for i in grasp_insets(cfg.grasp) if i >= plan.inset - 1e-9],
+                                      insets=[i for i in grasp_insets(cfg.grasp)
+                                              if plan.inset - 1e-9 <= i <= plan.inset + GRASP_STATION_M + 1e-9],
                                       tape_base=est.nodes[0])
                 except PlanRefused as e:
                     times["plan"] += time.perf_counter() - t0
@@ -815,7 +816,7 @@ def _grasp_point_touch(cell, sim_arm, est, inset: float, cfg, probes: list, note
     distances [mm] (the grasp point's first, then towards the base and past it),
     ``probed_grasp_off`` the offset [mm] and the turn [deg]."""
     from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame
-    from tapecell.cell.probe import GRASP_STATION_M, GRASP_TURN_MAX_DEG, grasp_station
+    from tapecell.cell.probe import GRASP_SHIFT_MAX_M, GRASP_TURN_MAX_DEG, grasp_station
 
     position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
                                      est.nodes)
@@ -836,6 +837,9 @@ def _grasp_point_touch(cell, sim_arm, est, inset: float, cfg, probes: list, note
     if turn is None:
         return (f"the needle found no tape {1e3 * GRASP_STATION_M:.0f} mm from the grasp point {where} along the "
                 f"estimated tape: the pads would not hold it square")
+    if float(np.linalg.norm(offset)) > GRASP_SHIFT_MAX_M:
+        return (f"the tape at the grasp point {where} lies {1e3 * float(np.linalg.norm(offset)):.1f} mm off the "
+                f"estimate (> {1e3 * GRASP_SHIFT_MAX_M:.0f} mm): the shape there is not the estimate's")
     if turn > GRASP_TURN_MAX_DEG:
         return (f"the tape at the grasp point {where} turns {turn:.0f} deg off the estimate (> "
                 f"{GRASP_TURN_MAX_DEG:.0f} deg): the pads would not hold it square")

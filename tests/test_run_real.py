@@ -357,7 +357,7 @@ def test_probe_whose_trunk_touch_fails_moves_nothing(real_like, monkeypatch, cap
 
 
 @pytest.mark.parametrize("off_m, across_m, rise_m", [(0.005, 0.0, 0.0), (0.001, 0.0, 0.002), (0.0, 0.02, 0.0),
-                                                     (0.002, 0.0, 0.008)])
+                                                     (0.002, 0.0, 0.008), (0.012, 0.0, 0.0)])
 def test_a_grasp_farther_in_than_the_needle_checked_touches_the_grasp_point_first(real_like, monkeypatch, capsys,
                                                                                    off_m, across_m, rise_m):
     """--execute --probe, with the needle's checks taken to reach only 4 mm in from the end
@@ -365,7 +365,8 @@ def test_a_grasp_farther_in_than_the_needle_checked_touches_the_grasp_point_firs
     after settling the end, the operator also touches the tape where the jaw will hold it and
     6 mm either side. Tape 5 mm off the estimate along its normal there: the grasp is planned
     again about it, then run; 1 mm off, 19 deg turned: planned as it was; a touch 20 mm across
-    the tape from the grasp point, or the tape turned 53 deg there: refused, nothing moved."""
+    the tape from the grasp point, the tape turned 53 deg there, or 12 mm off (more than
+    GRASP_SHIFT_MAX_M): refused, nothing moved."""
     import numpy as np
     from fakes import FakeRobot, install_fake_rtde
 
@@ -392,10 +393,11 @@ def test_a_grasp_farther_in_than_the_needle_checked_touches_the_grasp_point_firs
     out, err = capsys.readouterr()
     assert sum("mm in from its end" in p for p in prompts) == 3
     names = [c[0] for c in robot.log]
-    if across_m or rise_m > 0.005:
+    if across_m or rise_m > 0.005 or off_m > probe.GRASP_SHIFT_MAX_M:
         last = err.strip().splitlines()[-1]
-        assert code == 1 and ("20.0 mm from that point across the tape" in last if across_m else
-                              "turns 53 deg off the estimate (> 30 deg)" in last), last
+        want = ("20.0 mm from that point across the tape" if across_m else
+                "turns 53 deg off the estimate (> 30 deg)" if rise_m else "lies 12.0 mm off the estimate (> 10 mm)")
+        assert code == 1 and want in last, last
         assert not any(c[0] in ("moveJ", "moveL", "setStandardDigitalOut") for c in robot.log)
         return
     assert code == 0, err

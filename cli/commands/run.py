@@ -33,8 +33,9 @@ by at most 30 deg, else nothing moves (the trunk check). Where the plan then hol
 more than 18 mm in from that end (the planner's fallbacks, when no grasp nearer the end
 passes), you also put the needle on the tape's middle at the grasp point and 6 mm either side
 of it: tape more than 3 mm off the estimate along its normal there has the grasp planned again
-about it (at that inset or farther in); a touch skipped or more than 10 mm across the tape
-from its point, or tape turned more than 30 deg off the estimate there, moves nothing.
+about it (at that inset or up to 6 mm farther in); a touch skipped or more than 10 mm across
+the tape from its point, or tape more than 10 mm or 30 deg off the estimate there, moves
+nothing.
 Any other "poor_fit" is refused: the model does not explain what was seen.
 
 Nothing moves without --execute. With --execute the robot's address and the plan are
@@ -112,8 +113,8 @@ def run(args: argparse.Namespace) -> int:
     from tapecell.estimator.capture import load_cameras, save_capture
     from tapecell.cell.config import load_cell_config
 
-    from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, Speeds, TipFrame, estimated_surface,
-                                       execute_plan, plan_grasp)
+    from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, PlanRefused, Speeds, TipFrame,
+                                       estimated_surface, execute_plan, plan_grasp)
     from tapecell.cell.safety import SafetyLimits
     from tapecell.cell import probe
     from tapecell.cell.probe import end_measurable, hypotheses_to_probe
@@ -179,7 +180,11 @@ def run(args: argparse.Namespace) -> int:
             moved = _grasp_point_checked(cfg, est, shown.inset, story, args.yes)
             if moved is not None:
                 shift, insets = moved
-                shown = make_plan(None)
+                try:
+                    shown = make_plan(None)
+                except PlanRefused as e:
+                    raise PlanRefused(e.reason, f"{e.detail} (planned again about the tape the needle touched at "
+                                                "the grasp point); nothing moved") from None
         story.add("plan", None, (shown, REFERENCE_JOINTS, None))
         print(shown.describe())
         if not args.execute:
@@ -260,8 +265,10 @@ def settle_with_needle(cfg, capture, est, story, yes: bool, prompt=None, log=pri
 
 GRASP_TOUCH_ACROSS_M = 0.010
 """The operator's touches at a far grasp point (:func:`_grasp_point_checked`) must each lie
-within this of the point aimed at, across the tape's normal [m] (half the tape's 30 mm width,
-less a margin): farther, they say nothing of the tape where the jaw will hold it."""
+within this of the point aimed at across the tape's width [m] (half the tape's 30 mm width,
+less a margin), and the two outer ones at least GRASP_STATION_M apart along it (the turn is
+taken over the run between them): else they say nothing of the tape where the jaw will hold
+it."""
 
 
 def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, log=print):
@@ -271,9 +278,11 @@ def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, 
     point and GRASP_STATION_M either side of it (:func:`tapecell.cell.probe.grasp_station`).
     Returns None when the tape at the grasp point is within GRASP_RECENTRE_M of the estimate
     along its normal, else (the offset (3,) [m] to move the estimated tape by, the insets to
-    plan at: this one or farther in); raises :class:`TaskFailed` (nothing moved but by hand)
-    when a touch is skipped, lies more than GRASP_TOUCH_ACROSS_M across the tape from its
-    point, or the tape there turns more than GRASP_TURN_MAX_DEG off the estimate."""
+    plan at: this one or farther in within the touched stretch); raises :class:`TaskFailed`
+    (nothing moved but by hand) when a touch is skipped or lies more than
+    GRASP_TOUCH_ACROSS_M across the tape from its point, the outer two are less than
+    GRASP_STATION_M apart along it, or the tape there lies more than GRASP_SHIFT_MAX_M off or
+    turns more than GRASP_TURN_MAX_DEG off the estimate."""
     from tapecell.cell import probe
     from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame, grasp_insets
     from tapecell.cell.ur import URArm
@@ -303,13 +312,19 @@ def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, 
     story.add("probes", None, [{"label": labels[k], "aimed": aimed[k], "touched": touched[k], "t": None}
                                for k in labels])
     for k in labels:
-        v = touched[k] - aimed[k]
-        across = float(np.linalg.norm(v - (v @ rotation[:, 2]) * rotation[:, 2]))
+        across = abs(float((touched[k] - aimed[k]) @ rotation[:, 1]))
         if across > GRASP_TOUCH_ACROSS_M:
             raise TaskFailed(f"the needle's touch on the tape's {labels[k]} is {across * 1e3:.1f} mm from that point "
                              f"across the tape (at most {GRASP_TOUCH_ACROSS_M * 1e3:.0f} mm); nothing moved")
+    run = float((touched[1] - touched[-1]) @ rotation[:, 0])
+    if run < step:
+        raise TaskFailed(f"the needle's touches either side of the grasp point are {run * 1e3:.1f} mm apart along the "
+                         f"tape (at least {step * 1e3:.0f} mm, the nearer one nearer the end); nothing moved")
     offset, turn = probe.grasp_station(position, rotation, touched)
     off = float(np.linalg.norm(offset)) * 1e3
+    if off > probe.GRASP_SHIFT_MAX_M * 1e3:
+        raise TaskFailed(f"the tape where the jaw will hold it lies {off:.1f} mm off the estimate (> "
+                         f"{probe.GRASP_SHIFT_MAX_M * 1e3:.0f} mm): the shape there is not the estimate's; nothing moved")
     if turn > probe.GRASP_TURN_MAX_DEG:
         raise TaskFailed(f"the tape where the jaw will hold it turns {turn:.0f} deg off the estimate (> "
                          f"{probe.GRASP_TURN_MAX_DEG:.0f} deg): the pads would not hold it square; nothing moved")
@@ -318,7 +333,7 @@ def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, 
         return None
     log(f"grasp point: the tape is {off:.1f} mm off the estimate there, {turn:.0f} deg off; the grasp is planned "
         "again about it")
-    return offset, [i for i in grasp_insets(cfg.grasp) if i >= inset - 1e-9]
+    return offset, [i for i in grasp_insets(cfg.grasp) if inset - 1e-9 <= i <= inset + step + 1e-9]
 
 
 def _touch_end(cfg, yes: bool, what: str, then: str, prompt=None, log=print) -> tuple[np.ndarray, np.ndarray]:
