@@ -391,6 +391,23 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     raise PlanRefused(shown.reason, f"{shown.detail} (all {len(refusals)} approach variants refused: {tally})")
 
 
+def plan_for_estimate(est: Any, spec: Any, cfg: Any, limits: SafetyLimits, *, shift: Any = None,
+                      **kw: Any) -> GraspPlan:
+    """:func:`plan_grasp` for an ``estimator.Estimate`` ``est`` of the tape ``spec``
+    (``Capture.tape``) in the cell file ``cfg``: its tip frame, its centre line and faces
+    checked against the open fingers, its base for the peel direction. ``shift`` (3,) [m]:
+    the estimated tape (tip, centre line and faces; not its base) moved by this first (onto
+    the needle's touch at a grasp point). ``kw``: :func:`plan_grasp`'s other keywords."""
+    tip = TipFrame.from_estimate(est)
+    nodes = np.asarray(est.nodes, float)
+    surface = estimated_surface(spec, est.angles)
+    if shift is not None:
+        tip = dataclasses.replace(tip, position=tip.position + shift)
+        nodes, surface = nodes + shift, surface + shift
+    return plan_grasp(tip, GraspParams.from_config(cfg.grasp), GripperGeometry.from_config(cfg.tools.gripper), limits,
+                      tape_points=nodes, tape_base=np.asarray(est.nodes, float)[0], tape_surface=surface, **kw)
+
+
 def grasp_insets(params: Any) -> tuple[float, ...]:
     """The grasp points' distances in from the tip [m] :func:`plan_grasp` tries, in order: the
     cell file's ``inset`` (``params.inset``), then the fallbacks of :data:`EXTRA_INSETS_M`."""

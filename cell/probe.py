@@ -244,6 +244,33 @@ def grasp_station(position: np.ndarray, rotation: np.ndarray, touched: dict) -> 
     return along(0) * normal, turn
 
 
+def grasp_station_problem(offset: np.ndarray, turn: float | None) -> str | None:
+    """Why the tape the needle touched at a grasp point (:func:`grasp_station`'s ``offset``
+    and ``turn``) may not be grasped there: no tape GRASP_STATION_M to a side (``turn``
+    None), more than GRASP_SHIFT_MAX_M off the estimate, or turned more than
+    GRASP_TURN_MAX_DEG; None when it may."""
+    off = 1e3 * float(np.linalg.norm(offset))
+    if turn is None:
+        return (f"no tape {1e3 * GRASP_STATION_M:.0f} mm to a side of the grasp point along the estimated tape: the "
+                f"pads would not hold it square")
+    if off > 1e3 * GRASP_SHIFT_MAX_M:
+        return (f"the tape at the grasp point lies {off:.1f} mm off the estimate (> {1e3 * GRASP_SHIFT_MAX_M:.0f} "
+                f"mm): the shape there is not the estimate's")
+    if turn > GRASP_TURN_MAX_DEG:
+        return (f"the tape at the grasp point turns {turn:.0f} deg off the estimate (> {GRASP_TURN_MAX_DEG:.0f} "
+                f"deg): the pads would not hold it square")
+    return None
+
+
+def replan_insets(params: Any, inset: float) -> list[float]:
+    """The grasp insets [m] a grasp planned ``inset`` in may be planned again at about the
+    tape the needle touched there: the planner's (``cell.planner.grasp_insets`` of
+    ``params``) from ``inset`` to GRASP_STATION_M farther in, the stretch the touches cover."""
+    from .planner import grasp_insets
+
+    return [i for i in grasp_insets(params) if inset - 1e-9 <= i <= inset + GRASP_STATION_M + 1e-9]
+
+
 REFIT_TOUCH_MAX_M = 0.012
 """A needle sent to a tip that touched tape farther than PROBE_CONFIRM_M from it, but within
 this [m], refits the shape through the touch (:func:`tapecell.estimator.touch.refit`): the

@@ -224,11 +224,12 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
                [(a.cost, a.tip_position) for a in near])
     verdict, reason = j.verdict, j.reason
-    bend, joint = edgewise_bend(shape.frames)
-    if verdict is Verdict.OK and bend > EDGEWISE_MAX_DEG:
-        # A tape hardly bends within its own plane: no tape takes this shape.
-        verdict, reason = Verdict.POOR_FIT, (f"the shape {EDGEWISE} by {bend:.0f} deg at joint {joint} (> "
-                                             f"{EDGEWISE_MAX_DEG:g} deg): not a shape a tape takes")
+    if verdict is Verdict.OK:
+        bend, joint = edgewise_bend(shape.frames)
+        if bend > EDGEWISE_MAX_DEG:
+            # A tape hardly bends within its own plane: no tape takes this shape.
+            verdict, reason = Verdict.POOR_FIT, (f"the shape {EDGEWISE} by {bend:.0f} deg at joint {joint} (> "
+                                                 f"{EDGEWISE_MAX_DEG:g} deg): not a shape a tape takes")
     return verdict, reason, j.tip_views, tuple(near), j.offsets_px
 
 

@@ -17,8 +17,9 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, GRASP_STATION_M, PAST_END_MAX_M,
-                                 PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis)
+from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, GRASP_STATION_M, PAST_END_MAX_M, PROBE_CONFIRM_M,
+                                 PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis,
+                                 replan_insets)
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -66,8 +67,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     from .arm import SimArm
     from tapecell.cell.config import CellConfig, load_cell_config
 
-    from tapecell.cell.planner import (GraspParams, GripperGeometry, PlanRefused, TipFrame, estimated_surface, grasp_insets,
-                                       plan_grasp)
+    from tapecell.cell.planner import PlanRefused, plan_for_estimate
     from tapecell.cell.safety import SafetyLimits
 
     from tapecell.cell.story import Story
@@ -167,10 +167,7 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
         limits = SafetyLimits.from_cell(cfg)
         q_start = sim_arm.joints()
         try:
-            plan = plan_grasp(TipFrame.from_estimate(est), GraspParams.from_config(cfg.grasp),
-                              GripperGeometry.from_config(cfg.tools.gripper), limits,
-                              q_start=q_start, tape_points=est.nodes,
-                              tape_surface=estimated_surface(capture.tape, est.angles))
+            plan = plan_for_estimate(est, capture.tape, cfg, limits, q_start=q_start)
         except PlanRefused as e:
             times["plan"] = time.perf_counter() - t0
             story.add("plan", float(cell.data.time), (None, q_start, e))
@@ -192,16 +189,9 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
                 return doc
             if float(np.linalg.norm(offset)) > GRASP_RECENTRE_M:
                 t0 = time.perf_counter()
-                tip = TipFrame.from_estimate(est)
                 try:
-                    plan = plan_grasp(dataclasses.replace(tip, position=tip.position + offset),
-                                      GraspParams.from_config(cfg.grasp),
-                                      GripperGeometry.from_config(cfg.tools.gripper), limits,
-                                      q_start=sim_arm.joints(), tape_points=est.nodes + offset,
-                                      tape_surface=estimated_surface(capture.tape, est.angles) + offset,
-                                      insets=[i for i in grasp_insets(cfg.grasp)
-                                              if plan.inset - 1e-9 <= i <= plan.inset + GRASP_STATION_M + 1e-9],
-                                      tape_base=est.nodes[0])
+                    plan = plan_for_estimate(est, capture.tape, cfg, limits, shift=offset, q_start=sim_arm.joints(),
+                                             insets=replan_insets(cfg.grasp, plan.inset))
                 except PlanRefused as e:
                     times["plan"] += time.perf_counter() - t0
                     story.add("plan", float(cell.data.time), (None, q_start, e))
@@ -816,7 +806,7 @@ def _grasp_point_touch(cell, sim_arm, est, inset: float, cfg, probes: list, note
     distances [mm] (the grasp point's first, then towards the base and past it),
     ``probed_grasp_off`` the offset [mm] and the turn [deg]."""
     from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame
-    from tapecell.cell.probe import GRASP_SHIFT_MAX_M, GRASP_TURN_MAX_DEG, grasp_station
+    from tapecell.cell.probe import grasp_station, grasp_station_problem
 
     position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
                                      est.nodes)
@@ -828,22 +818,14 @@ def _grasp_point_touch(cell, sim_arm, est, inset: float, cfg, probes: list, note
             notes.setdefault("probed_grasp_mm", []).append(None if hit is None else round(1e3 * hit[0], 2))
             if hit is None:
                 break
-    where = f"{1e3 * inset:.0f} mm in from the end it measured"
+    where = f"{1e3 * inset:.0f} mm in from the end the needle measured"
     if touched[0] is None:
         return f"the needle found no tape at the grasp point {where}"
     offset, turn = grasp_station(position, rotation, touched)
     notes["probed_grasp_off"] = {"mm": round(1e3 * float(np.linalg.norm(offset)), 2),
                                  "deg": None if turn is None else round(turn, 1)}
-    if turn is None:
-        return (f"the needle found no tape {1e3 * GRASP_STATION_M:.0f} mm from the grasp point {where} along the "
-                f"estimated tape: the pads would not hold it square")
-    if float(np.linalg.norm(offset)) > GRASP_SHIFT_MAX_M:
-        return (f"the tape at the grasp point {where} lies {1e3 * float(np.linalg.norm(offset)):.1f} mm off the "
-                f"estimate (> {1e3 * GRASP_SHIFT_MAX_M:.0f} mm): the shape there is not the estimate's")
-    if turn > GRASP_TURN_MAX_DEG:
-        return (f"the tape at the grasp point {where} turns {turn:.0f} deg off the estimate (> "
-                f"{GRASP_TURN_MAX_DEG:.0f} deg): the pads would not hold it square")
-    return offset
+    problem = grasp_station_problem(offset, turn)
+    return offset if problem is None else f"grasp point {where}: {problem}"
 
 
 def _execute_and_check(cell, sim_arm, plan, limits, motion) -> EpisodeOutcome:

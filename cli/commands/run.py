@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -113,8 +112,8 @@ def run(args: argparse.Namespace) -> int:
     from tapecell.estimator.capture import load_cameras, save_capture
     from tapecell.cell.config import load_cell_config
 
-    from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, PlanRefused, Speeds, TipFrame,
-                                       estimated_surface, execute_plan, plan_grasp)
+    from tapecell.cell.planner import (REFERENCE_JOINTS, GripperGeometry, PlanRefused, Speeds, execute_plan,
+                                       plan_for_estimate)
     from tapecell.cell.safety import SafetyLimits
     from tapecell.cell import probe
     from tapecell.cell.probe import end_measurable, hypotheses_to_probe
@@ -162,16 +161,12 @@ def run(args: argparse.Namespace) -> int:
         else:
             probed = False
         # The estimated tape moved onto the needle's touch at a far grasp point, and the
-        # insets then tried (see _grasp_point_checked); none: as estimated.
-        shift, insets = np.zeros(3), None
+        # insets then tried (see _grasp_point_checked); None: as estimated.
+        shift, insets = None, None
 
         def make_plan(q_start, ik=None):
             kw = {} if ik is None else {"ik": ik}
-            tip = TipFrame.from_estimate(est)
-            return plan_grasp(dataclasses.replace(tip, position=tip.position + shift),
-                              GraspParams.from_config(cfg.grasp), GripperGeometry.from_config(cfg.tools.gripper),
-                              limits, q_start=q_start, tape_points=est.nodes + shift, tape_base=est.nodes[0],
-                              tape_surface=estimated_surface(capture.tape, est.angles) + shift, insets=insets, **kw)
+            return plan_for_estimate(est, capture.tape, cfg, limits, shift=shift, q_start=q_start, insets=insets, **kw)
 
         shown = make_plan(None)
         if probed and shown.inset > probe.GRASP_CHECKED_M + 1e-9:
@@ -284,7 +279,7 @@ def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, 
     GRASP_STATION_M apart along it, or the tape there lies more than GRASP_SHIFT_MAX_M off or
     turns more than GRASP_TURN_MAX_DEG off the estimate."""
     from tapecell.cell import probe
-    from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame, grasp_insets
+    from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame
     from tapecell.cell.ur import URArm
 
     position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
@@ -321,19 +316,16 @@ def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, 
         raise TaskFailed(f"the needle's touches either side of the grasp point are {run * 1e3:.1f} mm apart along the "
                          f"tape (at least {step * 1e3:.0f} mm, the nearer one nearer the end); nothing moved")
     offset, turn = probe.grasp_station(position, rotation, touched)
+    problem = probe.grasp_station_problem(offset, turn)
+    if problem is not None:
+        raise TaskFailed(f"{problem}; nothing moved")
     off = float(np.linalg.norm(offset)) * 1e3
-    if off > probe.GRASP_SHIFT_MAX_M * 1e3:
-        raise TaskFailed(f"the tape where the jaw will hold it lies {off:.1f} mm off the estimate (> "
-                         f"{probe.GRASP_SHIFT_MAX_M * 1e3:.0f} mm): the shape there is not the estimate's; nothing moved")
-    if turn > probe.GRASP_TURN_MAX_DEG:
-        raise TaskFailed(f"the tape where the jaw will hold it turns {turn:.0f} deg off the estimate (> "
-                         f"{probe.GRASP_TURN_MAX_DEG:.0f} deg): the pads would not hold it square; nothing moved")
     if off <= probe.GRASP_RECENTRE_M * 1e3:
         log(f"grasp point: the tape is {off:.1f} mm from the estimate there, {turn:.0f} deg off; planned as it was")
         return None
     log(f"grasp point: the tape is {off:.1f} mm off the estimate there, {turn:.0f} deg off; the grasp is planned "
         "again about it")
-    return offset, [i for i in grasp_insets(cfg.grasp) if inset - 1e-9 <= i <= inset + step + 1e-9]
+    return offset, probe.replan_insets(cfg.grasp, inset)
 
 
 def _touch_end(cfg, yes: bool, what: str, then: str, prompt=None, log=print) -> tuple[np.ndarray, np.ndarray]:
