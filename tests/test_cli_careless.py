@@ -277,7 +277,10 @@ def test_a_terminated_episode_leaves_no_recording(tmp_path):
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and not any(tmp_path.iterdir()):
             time.sleep(0.05)                 # the hidden temporary recording appears
-        assert any(tmp_path.iterdir()), "the episode never started its recording"
+        if not any(tmp_path.iterdir()):
+            ended = proc.poll()
+            why = "still running" if ended is None else f"exited {ended}: {proc.communicate()[1][-2000:]}"
+            raise AssertionError(f"the episode never started its recording within 120 s ({why})")
         proc.send_signal(signal.SIGTERM)
         out, err = proc.communicate(timeout=60)
     finally:
