@@ -10,11 +10,11 @@ import signal
 import stat
 import subprocess
 import sys
+import tempfile
 import time
 import uuid
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from tapecell import __version__
@@ -271,20 +271,27 @@ def test_a_failed_estimate_leaves_no_recording(tmp_path, capture, capsys):
 def test_a_terminated_episode_leaves_no_recording(tmp_path):
     """SIGTERM mid-run: tapecell cleans up as for Ctrl-C (exit 143) and leaves no .tmp."""
     rrd = tmp_path / "ep.rrd"
-    proc = subprocess.Popen([sys.executable, "-m", "tapecell.cli.main", "episode", "--seed", "20015", "--rrd",
-                             str(rrd)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not any(tmp_path.iterdir()):
-            time.sleep(0.05)                 # the hidden temporary recording appears
-        if not any(tmp_path.iterdir()):
-            ended = proc.poll()
-            why = "still running" if ended is None else f"exited {ended}: {proc.communicate()[1][-2000:]}"
-            raise AssertionError(f"the episode never started its recording within 120 s ({why})")
-        proc.send_signal(signal.SIGTERM)
-        out, err = proc.communicate(timeout=60)
-    finally:
-        proc.kill()
+    # The child's output goes to files, not pipes: a pipe nobody reads while the test waits
+    # blocks the child once it fills (64 KB of warnings would stall the episode).
+    with tempfile.TemporaryFile("w+") as out_file, tempfile.TemporaryFile("w+") as err_file:
+        proc = subprocess.Popen([sys.executable, "-m", "tapecell.cli.main", "episode", "--seed", "20015", "--rrd",
+                                 str(rrd)], stdout=out_file, stderr=err_file, text=True)
+        try:
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and not any(tmp_path.iterdir()):
+                time.sleep(0.05)                 # the hidden temporary recording appears
+            if not any(tmp_path.iterdir()):
+                ended = proc.poll()
+                err_file.seek(0)
+                why = "still running" if ended is None else f"exited {ended}"
+                raise AssertionError(f"the episode never started its recording within 120 s ({why}): "
+                                     f"{err_file.read()[-2000:]}")
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=60)
+        finally:
+            proc.kill()
+        err_file.seek(0)
+        err = err_file.read()
     assert proc.returncode == 143, err
     assert err.strip().splitlines()[-1] == "tapecell: terminated"
     # Nothing half-written. (Where the signal lands in a finaliser, Python ignores its
