@@ -53,8 +53,8 @@ from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
 from .tape import forward_kinematics
-from .verdict import (DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess, edgewise_bend, end_on,
-                      is_close_alternative, mask_fault, rival_reason)
+from .verdict import (DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess, boundary_offsets,
+                      edgewise_bend, end_on, is_close_alternative, mask_fault, rival_reason, sizes)
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -100,7 +100,9 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
     trace holds the winning candidate's angles after each local-stage iteration, and
     fallback (with the strip stage, else None) is (the plate fit's eq.-11 cost, [functions
     giving the chains to fall back to, in order, the plate fit last]) for estimate()'s
-    guard. ``first``: this capture's :class:`FirstStage` when another look made it."""
+    guard. Then the hypotheses, and the strip stage's output (``.tip``: its end frame,
+    ``.fine``: the strip's shape; None without the strip stage). ``first``: this capture's
+    :class:`FirstStage` when another look made it."""
     chain = Chain(capture.tape, cfg=cfg)
     first = FirstStage(capture, chain, cfg) if first is None else first
     fields = first.fields
@@ -134,10 +136,9 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
             if c3 < cost:
                 angles, trace, cost = a3, first.trace + t3, c3
     fallback = None
-    tip = None
+    strip = None
     if cfg.strip:
-        output = first.strip(chain, angles, cfg)
-        tip = output.tip
+        output = strip = first.strip(chain, angles, cfg)
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
         # above the guard: the chain without the tip-frame pull, then the plate fit.
@@ -146,7 +147,7 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
         angles = output(cfg.strip_frame_weight)
         trace = trace + [angles]
     winner = plate if cfg.strip else angles
-    return angles, trace, evaluator.evaluations, fallback, hypotheses(chain, pool, winner), tip
+    return angles, trace, evaluator.evaluations, fallback, hypotheses(chain, pool, winner), strip
 
 
 def misfit_px(evaluator: CostEvaluator, quads: np.ndarray | None = None) -> float:
@@ -208,11 +209,24 @@ def _costed(capture: Capture, angles: np.ndarray):
     return shape, evaluator.view_costs(quads), evaluator
 
 
+def _offsets(capture: Capture, quads: np.ndarray) -> np.ndarray:
+    """Per view, the mean boundary distance [px] between ``quads``' (m, 4, 3) silhouette and
+    the observed one (the verdict's measure, :func:`verdict.boundary_offsets`)."""
+    evaluator = CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views], capture.scene)
+    view_costs = evaluator.view_costs(quads)
+    targets = evaluator.targets
+    models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(quads), targets)]
+    areas, lengths = sizes([t.observed for t in targets])
+    return boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
+
+
 def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, shape, tip_position: np.ndarray,
-           tip_rotation: np.ndarray, best_cost: float, hypotheses: list):
+           tip_rotation: np.ndarray, best_cost: float, hypotheses: list, strip_shape=None):
     """(verdict, reason, tip_views, alternatives) of the output ``shape`` whose
     ``view_costs`` ``evaluator`` gave; ``best_cost``: the plate fit's eq.-11 cost, the
-    scale of the ``hypotheses`` [(cost, angles)]."""
+    scale of the ``hypotheses`` [(cost, angles)]; ``strip_shape``: the strip the tip frame
+    comes from, whose fit to the views may stand for the plate chain's
+    (:func:`verdict.explaining_offsets`)."""
     near = []
     for cost, a in hypotheses:
         if is_close_alternative(cost, best_cost):
@@ -222,7 +236,8 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(shape.quads()), targets)]
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
-               [(a.cost, a.tip_position) for a in near])
+               [(a.cost, a.tip_position) for a in near],
+               None if strip_shape is None else _offsets(capture, strip_shape.quads()))
     verdict, reason = j.verdict, j.reason
     if verdict is Verdict.OK:
         bend, joint = edgewise_bend(shape.frames)
@@ -339,11 +354,11 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
         faults = [(k, f) for k, f in faults if f]
         if faults:
             return _garbage(capture, faults, method, start, config)
-    fallback, found, tip = None, [], None
+    fallback, found, strip = None, [], None
     if method == "default":
         first = FirstStage(capture, Chain(capture.tape, cfg=config), config) if first is None else first
-        angles, trace, evaluations, fallback, found, tip = fit_default(capture, thorough=thorough, cfg=config,
-                                                                       first=first)
+        angles, trace, evaluations, fallback, found, strip = fit_default(capture, thorough=thorough, cfg=config,
+                                                                         first=first)
     else:
         angles, history, evaluations = fit_paper(capture, callback)
     shape, view_costs, evaluator = _costed(capture, angles)
@@ -357,13 +372,15 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
             trace = trace[:-1] + ([angles] if alternatives else [])
             shape, view_costs, evaluator = _costed(capture, angles)
             if not alternatives:
-                tip = None   # back to the plate fit: the strip went astray
+                strip = None   # back to the plate fit: the strip went astray
     plate_cost = fallback[0] if fallback is not None else combine(view_costs)
     # The tip frame: the strip's end (it follows a tip that curls within one plate, where
     # the last plate is a chord), else the plate chain's F_n at P_C[n].
-    tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
-    verdict, reason, tip_views, alternatives, offsets = _judge(capture, evaluator, view_costs, shape, tip_position, tip_rotation,
-                                                      min(plate_cost, combine(view_costs)), found)
+    tip_position, tip_rotation = (strip.tip if strip is not None
+                                  else (shape.nodes[-1].copy(), shape.frames[-1].copy()))
+    verdict, reason, tip_views, alternatives, offsets = _judge(capture, evaluator, view_costs, shape, tip_position,
+                                                               tip_rotation, min(plate_cost, combine(view_costs)),
+                                                               found, None if strip is None else strip.fine)
     elapsed = time.perf_counter() - start
     if method == "default":
         # The cost per iteration on the eq.-11 scale, for recordings and plots.

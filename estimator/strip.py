@@ -119,6 +119,7 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
         return levenberg_marquardt_one(fun, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
 
     output.tip = (fine.nodes[-1].copy(), fine.frames[-1].copy())   # the strip's end frame
+    output.fine = fine   # the strip itself (the fine chain's shape)
     return output
 
 

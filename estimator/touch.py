@@ -80,7 +80,7 @@ def refit(capture: Capture, angles: np.ndarray, point: np.ndarray, depth: float,
     fun = with_rows(views, lambda x: chain.corners(x.reshape(chain.n, 3)), rows)
     x = levenberg_marquardt_one(fun, np.asarray(angles, float).ravel().copy(), cfg.lm_iterations * 3, cfg.lm_rtol)
     plate = x.reshape(chain.n, 3)
-    tip = None
+    tip, fine = None, None
     angles_out = plate
     shape, view_costs, evaluator = _costed(capture, plate)
     if cfg.strip:
@@ -90,11 +90,11 @@ def refit(capture: Capture, angles: np.ndarray, point: np.ndarray, depth: float,
         out = output(cfg.strip_frame_weight)
         costed = _costed(capture, out)
         if combine(costed[1]) <= cfg.strip_guard * combine(view_costs):
-            angles_out, tip = out, output.tip
+            angles_out, tip, fine = out, output.tip, output.fine
             shape, view_costs, evaluator = costed
     tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
     verdict, reason, tip_views, _, offsets = _judge(capture, evaluator, view_costs, shape, tip_position,
-                                                    tip_rotation, combine(view_costs), [])
+                                                    tip_rotation, combine(view_costs), [], fine)
     return Estimate(shape.nodes, angles_out, tip_position, tip_rotation, combine(view_costs), view_costs,
                     time.perf_counter() - start, "default", verdict=verdict, verdict_reason=reason,
                     tip_views=tip_views, view_offsets_px=offsets)

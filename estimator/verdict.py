@@ -8,7 +8,8 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   mean distance between the model's and the observed boundary [px]: about 0.5-1.5 px on
   good fits whatever the view's size or thickness, where the area-normalised eq. 7 cost of
   an edge-on view is several times that of a face-on one. Above ``POOR_OFFSET_PX`` in any
-  view: ``poor_fit``.
+  view: ``poor_fit``. The shape is the plate chain, or the strip the tip frame comes from
+  where the strip explains its worst view better (a bend within one plate's length).
 - Do two cameras locate the free end? The estimate's last ``TIP_SPAN_M`` of centre line
   and its tip corners are projected into each view; a view locates the free end when at
   least ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore
@@ -236,6 +237,17 @@ def sizes(masks: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
 def boundary_offsets(view_costs: np.ndarray, areas: np.ndarray, lengths: np.ndarray) -> np.ndarray:
     """(views,) mean boundary distance [px]: eq.-7 cost x observed area / outline length."""
     return np.asarray(view_costs, float) * np.asarray(areas, float) / np.asarray(lengths, float)
+
+
+def explaining_offsets(plate_offsets: np.ndarray, strip_offsets: np.ndarray | None) -> np.ndarray:
+    """The per-view mean boundary distances [px] that judge whether the estimate explains
+    the views: the plate chain's, or the strip's (the continuous strip the tip frame comes
+    from) where its worst view is better explained. A 30 mm plate cannot follow a tape that
+    bends within its length, so a right fit's plate chain may miss a bent stretch's outline
+    by several pixels that the strip follows."""
+    if strip_offsets is None or np.max(strip_offsets) >= np.max(plate_offsets):
+        return plate_offsets
+    return np.asarray(strip_offsets, float)
 
 
 def end_points(tip_position: np.ndarray, tip_rotation: np.ndarray, width: float) -> np.ndarray:
@@ -525,12 +537,16 @@ def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]
 def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs: np.ndarray,
            observed: Sequence[np.ndarray], models: Sequence[np.ndarray], origins: Sequence[tuple[int, int]],
            tip_position: np.ndarray, tip_rotation: np.ndarray, best_cost: float,
-           alternatives: Sequence[tuple[float, np.ndarray]]) -> Judgement:
+           alternatives: Sequence[tuple[float, np.ndarray]], strip_offsets: np.ndarray | None = None) -> Judgement:
     """The whole judgement of an estimate (see the module's text). ``observed``, ``models``:
     each view's observed silhouette (ignored pixels cleared) and the estimate's, as uint8
-    0/1 crops whose top-left pixels are ``origins``; ``view_costs``: eq. 7 per view."""
+    0/1 crops whose top-left pixels are ``origins``; ``view_costs``: eq. 7 per view.
+    ``strip_offsets``: the per-view mean boundary distances [px] of the strip the tip frame
+    comes from (the estimator's strip stage), which stand for the plate chain's where their
+    worst view is better explained (see :func:`explaining_offsets`)."""
     areas, lengths = sizes(observed)
-    offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
+    offsets = explaining_offsets(boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1])),
+                                 strip_offsets)
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
     seen = [s_ and _on_outline(v, o, xy, edge, boxes) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
