@@ -309,13 +309,18 @@ def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
 
 
 def unexplained(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
-                trunk_px: np.ndarray | None = None) -> tuple[float, float]:
+                trunk_px: np.ndarray | None = None, half_edge_px: np.ndarray | None = None) -> tuple[float, float]:
     """Both measures of :func:`unexplained_px` in one pass: (the longest region's bounding
     box side, how far tape goes on ahead of the tip along ``trunk_px``) [px]; the second is
     the first where the trunk's direction is unknown (None, or an end seen end-on: every
-    region counts as past the end). (The reverse, model over background there, was measured
-    and dropped: an edge-on end is a thin line whose offset of a few pixels leaves 40-70 px
-    long slivers on good fits, and it caught no wrong fit.)"""
+    region counts as past the end). ``half_edge_px``: the image vector from the tip to one
+    corner of the tip edge; with it, the distance ahead is taken from the tip edge (the
+    segment between the corners), not from its middle: a thin band of tape along the tip
+    edge (an end edge a little curved or tilted against the model's straight one, as a
+    shell tape's) goes on a few pixels past the end, not half the tape's width. (The
+    reverse, model over background there, was measured and dropped: an edge-on end is a
+    thin line whose offset of a few pixels leaves 40-70 px long slivers on good fits, and
+    it caught no wrong fit.)"""
     if not np.all(np.isfinite(tip_px)):
         return 0.0, 0.0
     h, w = observed.shape
@@ -342,8 +347,17 @@ def unexplained(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
             d = np.column_stack([xs + x - tip_px[0], ys + y - tip_px[1]])
             d = d[d @ along >= 0.0]
             if len(d):
-                ahead = max(ahead, float(np.linalg.norm(d, axis=1).max()))
+                ahead = max(ahead, float(_from_segment(d, half_edge_px).max()))
     return longest, (longest if along is None else ahead)
+
+
+def _from_segment(d: np.ndarray, half: np.ndarray | None) -> np.ndarray:
+    """Distances [px] of image offsets ``d`` (k, 2) from the tip to the segment from -half
+    to +half (the tip edge; a point where ``half`` is None or not finite)."""
+    if half is None or not np.all(np.isfinite(half)) or float(half @ half) < 1e-9:
+        return np.linalg.norm(d, axis=1)
+    t = np.clip(d @ half / float(half @ half), -1.0, 1.0)
+    return np.linalg.norm(d - t[:, None] * np.asarray(half, float), axis=1)
 
 
 THIN_END_PX = 2.0
@@ -554,11 +568,13 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     # Observed tape near the tip that the model leaves unexplained, per view that sees the
     # end: all of it, and what of it goes on past the tip.
     back = tip_position - 0.010 * tip_rotation[:, 0]
+    corner = tip_position + 0.5 * width * tip_rotation[:, 1]
     extra, beyond, tips = [], [], []
     for s_, v, o, m, xy in zip(seen, views, observed, models, origins):
-        uv = v.camera.project(np.vstack([tip_position, back]))
+        uv = v.camera.project(np.vstack([tip_position, back, corner]))
         tips.append(uv[0])
-        regions, ahead = unexplained(o, m, uv[0] - np.asarray(xy, float), uv[0] - uv[1]) if s_ else (0.0, 0.0)
+        regions, ahead = (unexplained(o, m, uv[0] - np.asarray(xy, float), uv[0] - uv[1], uv[2] - uv[0])
+                          if s_ else (0.0, 0.0))
         extra.append(regions)
         beyond.append(ahead)
     # A view locates the end (counts towards the two) where nothing near it is left
