@@ -35,7 +35,7 @@ in the README (``scripts/bench_verdict.py``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -239,15 +239,17 @@ def boundary_offsets(view_costs: np.ndarray, areas: np.ndarray, lengths: np.ndar
     return np.asarray(view_costs, float) * np.asarray(areas, float) / np.asarray(lengths, float)
 
 
-def explaining_offsets(plate_offsets: np.ndarray, strip_offsets: np.ndarray | None) -> np.ndarray:
+def explaining_offsets(plate_offsets: np.ndarray, strip_offsets: Callable[[], np.ndarray] | None) -> np.ndarray:
     """The per-view mean boundary distances [px] that judge whether the estimate explains
-    the views: the plate chain's, or the strip's (the continuous strip the tip frame comes
-    from) where its worst view is better explained. A 30 mm plate cannot follow a tape that
-    bends within its length, so a right fit's plate chain may miss a bent stretch's outline
-    by several pixels that the strip follows."""
-    if strip_offsets is None or np.max(strip_offsets) >= np.max(plate_offsets):
+    the views: the plate chain's, or, where they leave a view unexplained (above
+    POOR_OFFSET_PX), the strip's (the continuous strip the tip frame comes from, computed
+    only then) if its worst view is better explained. A 30 mm plate cannot follow a tape
+    that bends within its length, so a right fit's plate chain may miss a bent stretch's
+    outline by several pixels that the strip follows."""
+    if strip_offsets is None or np.max(plate_offsets) <= POOR_OFFSET_PX:
         return plate_offsets
-    return np.asarray(strip_offsets, float)
+    strip = np.asarray(strip_offsets(), float)
+    return strip if np.max(strip) < np.max(plate_offsets) else plate_offsets
 
 
 def end_points(tip_position: np.ndarray, tip_rotation: np.ndarray, width: float) -> np.ndarray:
@@ -551,13 +553,15 @@ def seeing_views(views: Sequence[View], points: np.ndarray, boxes: Sequence[Box]
 def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs: np.ndarray,
            observed: Sequence[np.ndarray], models: Sequence[np.ndarray], origins: Sequence[tuple[int, int]],
            tip_position: np.ndarray, tip_rotation: np.ndarray, best_cost: float,
-           alternatives: Sequence[tuple[float, np.ndarray]], strip_offsets: np.ndarray | None = None) -> Judgement:
+           alternatives: Sequence[tuple[float, np.ndarray]],
+           strip_offsets: Callable[[], np.ndarray] | None = None) -> Judgement:
     """The whole judgement of an estimate (see the module's text). ``observed``, ``models``:
     each view's observed silhouette (ignored pixels cleared) and the estimate's, as uint8
     0/1 crops whose top-left pixels are ``origins``; ``view_costs``: eq. 7 per view.
-    ``strip_offsets``: the per-view mean boundary distances [px] of the strip the tip frame
-    comes from (the estimator's strip stage), which stand for the plate chain's where their
-    worst view is better explained (see :func:`explaining_offsets`)."""
+    ``strip_offsets``: () -> the per-view mean boundary distances [px] of the strip the tip
+    frame comes from (the estimator's strip stage), which stand for the plate chain's where
+    these do not explain a view and the strip's worst view is better explained (see
+    :func:`explaining_offsets`)."""
     areas, lengths = sizes(observed)
     offsets = explaining_offsets(boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1])),
                                  strip_offsets)

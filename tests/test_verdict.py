@@ -80,9 +80,11 @@ def test_a_view_the_strip_explains_is_explained():
     assert _tip_mm(capture, est) < 1.5
     plate = _offsets(capture, forward_kinematics(capture.tape, est.angles).quads())
     assert plate.max() > POOR_OFFSET_PX >= est.view_offsets_px.max()
-    a, b = np.array([1.0, 3.5]), np.array([2.0, 2.5])
-    assert explaining_offsets(a, b) is b and explaining_offsets(b, a) is b
-    assert explaining_offsets(a, None) is a
+    a, b, c = np.array([1.0, 3.5]), np.array([2.0, 2.5]), np.array([3.2, 0.5])
+    assert explaining_offsets(a, lambda: b) is b and explaining_offsets(a, lambda: c) is c
+    assert explaining_offsets(c, lambda: a) is c and explaining_offsets(a, None) is a
+    # Not computed where the plate chain explains every view.
+    assert explaining_offsets(b, lambda: pytest.fail("computed")) is b
 
 
 @pytest.mark.parametrize("seed", [4100, 4101, 4102])
