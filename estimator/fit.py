@@ -245,7 +245,7 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
             # A tape hardly bends within its own plane: no tape takes this shape.
             verdict, reason = Verdict.POOR_FIT, (f"the shape {EDGEWISE} by {bend:.0f} deg at joint {joint} (> "
                                                  f"{EDGEWISE_MAX_DEG:g} deg): not a shape a tape takes")
-    return verdict, reason, j.tip_views, tuple(near), j.offsets_px
+    return verdict, reason, j.tip_views, tuple(near), j.offsets_px, j.by_strip
 
 
 def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
@@ -378,9 +378,9 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     # the last plate is a chord), else the plate chain's F_n at P_C[n].
     tip_position, tip_rotation = (strip.tip if strip is not None
                                   else (shape.nodes[-1].copy(), shape.frames[-1].copy()))
-    verdict, reason, tip_views, alternatives, offsets = _judge(capture, evaluator, view_costs, shape, tip_position,
-                                                               tip_rotation, min(plate_cost, combine(view_costs)),
-                                                               found, None if strip is None else strip.fine)
+    verdict, reason, tip_views, alternatives, offsets, by_strip = _judge(
+        capture, evaluator, view_costs, shape, tip_position, tip_rotation, min(plate_cost, combine(view_costs)),
+        found, None if strip is None else strip.fine)
     elapsed = time.perf_counter() - start
     if method == "default":
         # The cost per iteration on the eq.-11 scale, for recordings and plots.
@@ -403,11 +403,13 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     folded = ok and (float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
                      or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG)))
     seen_end_on = ok and any(end_on(v, tip_position, tip_rotation) for v in capture.views)
-    unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN)
+    # An "ok" whose views only the strip explains (verdict.explaining_offsets) was a poor fit
+    # of the plate chain: it gets the look a poor fit gets.
+    unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN) or (ok and by_strip)
     if method == "default" and second_look and not thorough and (folded or seen_end_on or unsure):
         # An "ok" estimate (a fold, an end seen end-on) gets a smaller thorough beam
         # (FitConfig.fold_beam).
-        look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok else config
+        look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok and not by_strip else config
         if verdict is not Verdict.HIDDEN:
             # Hooked-back ends only where the end is out of sight: a hooked plate fit whose
             # strip cannot follow it lowered the scale alternatives are weighed on, and

@@ -190,6 +190,8 @@ class Judgement:
     reason: str
     tip_views: int
     offsets_px: np.ndarray
+    by_strip: bool = False
+    """the offsets are the strip's (:func:`explaining_offsets`), not the plate chain's"""
 
 
 def _outline(m: np.ndarray) -> tuple[float, float]:
@@ -239,14 +241,23 @@ def boundary_offsets(view_costs: np.ndarray, areas: np.ndarray, lengths: np.ndar
     return np.asarray(view_costs, float) * np.asarray(areas, float) / np.asarray(lengths, float)
 
 
+STRIP_PLATE_MAX_PX = 4.5
+"""The strip's offsets stand for the plate chain's (:func:`explaining_offsets`) only where
+the plate chain's worst view is within this mean boundary distance [px]: the plate chain is
+the shape a robot plans around (its faces are kept clear of the open gripper), and may not
+be far off where the strip is not."""
+
+
 def explaining_offsets(plate_offsets: np.ndarray, strip_offsets: Callable[[], np.ndarray] | None) -> np.ndarray:
     """The per-view mean boundary distances [px] that judge whether the estimate explains
     the views: the plate chain's, or, where they leave a view unexplained (above
-    POOR_OFFSET_PX), the strip's (the continuous strip the tip frame comes from, computed
-    only then) if its worst view is better explained. A 30 mm plate cannot follow a tape
-    that bends within its length, so a right fit's plate chain may miss a bent stretch's
-    outline by several pixels that the strip follows."""
-    if strip_offsets is None or np.max(plate_offsets) <= POOR_OFFSET_PX:
+    POOR_OFFSET_PX, up to STRIP_PLATE_MAX_PX), the strip's (the continuous strip the tip
+    frame comes from, computed only then) if its worst view is better explained. A 30 mm
+    plate cannot follow a tape that bends within its length, so a right fit's plate chain
+    may miss a bent stretch's outline by several pixels that the strip follows. (An "ok"
+    this gives gets the estimator's second look, as an unsure estimate does.)"""
+    worst = float(np.max(plate_offsets))
+    if strip_offsets is None or not POOR_OFFSET_PX < worst <= STRIP_PLATE_MAX_PX:
         return plate_offsets
     strip = np.asarray(strip_offsets(), float)
     return strip if np.max(strip) < np.max(plate_offsets) else plate_offsets
@@ -349,8 +360,27 @@ def unexplained(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
             d = np.column_stack([xs + x - tip_px[0], ys + y - tip_px[1]])
             d = d[d @ along >= 0.0]
             if len(d):
-                ahead = max(ahead, float(_from_segment(d, half_edge_px).max()))
+                ahead = max(ahead, float(_from_segment(d, _across(half_edge_px, along, trunk_px)).max()))
     return longest, (longest if along is None else ahead)
+
+
+def _across(half: np.ndarray | None, along: np.ndarray, trunk_px: np.ndarray) -> np.ndarray | None:
+    """The part of the tip edge's half vector ``half`` [px] square to the trunk's image
+    direction ``along`` (unit), at most HALF_EDGE_MAX times the projected ``trunk_px``'s
+    length: a tip edge seen edge-on projects along the trunk, and tape past the end along it
+    must count in full; a corner projected near the camera's plane is not a measure."""
+    if half is None or not np.all(np.isfinite(half)):
+        return None
+    across = np.asarray(half, float) - (np.asarray(half, float) @ along) * along
+    cap = HALF_EDGE_MAX * float(np.linalg.norm(trunk_px))
+    size = float(np.linalg.norm(across))
+    return across if size <= cap else across * (cap / size)
+
+
+HALF_EDGE_MAX = 3.0
+"""The tip edge's half vector in the image counts up to this many times the projected
+length of the trunk's last 10 mm (the tape's half width is 15 mm: 1.5 times, foreshortened
+alike)."""
 
 
 def _from_segment(d: np.ndarray, half: np.ndarray | None) -> np.ndarray:
@@ -563,8 +593,8 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     these do not explain a view and the strip's worst view is better explained (see
     :func:`explaining_offsets`)."""
     areas, lengths = sizes(observed)
-    offsets = explaining_offsets(boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1])),
-                                 strip_offsets)
+    plate_offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
+    offsets = explaining_offsets(plate_offsets, strip_offsets)
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
     seen = [s_ and _on_outline(v, o, xy, edge, boxes) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
@@ -612,7 +642,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
         k = bad_end[0]
         verdict, reason = Verdict.POOR_FIT, (f"view {k} {END_UNEXPLAINED}: mean boundary distance "
                                              f"{ends[k]:.1f} px around the tip > {END_OFFSET_PX:g} px")
-    return Judgement(verdict, reason, sum(locates), offsets)
+    return Judgement(verdict, reason, sum(locates), offsets, offsets is not plate_offsets)
 
 
 def end_on(view: View, tip_position: np.ndarray, tip_rotation: np.ndarray) -> bool:

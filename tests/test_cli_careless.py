@@ -290,6 +290,7 @@ def test_a_terminated_episode_leaves_no_recording(tmp_path):
             proc.wait(timeout=60)
         finally:
             proc.kill()
+            proc.wait()
         err_file.seek(0)
         err = err_file.read()
     assert proc.returncode == 143, err

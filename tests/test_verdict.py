@@ -72,7 +72,7 @@ def test_a_view_the_strip_explains_is_explained():
     the strip's only where its worst view is better explained."""
     from tapecell.estimator import forward_kinematics
     from tapecell.estimator.fit import _offsets
-    from tapecell.estimator.verdict import explaining_offsets
+    from tapecell.estimator.verdict import STRIP_PLATE_MAX_PX, explaining_offsets
 
     capture = make_capture(891011, SyntheticOptions(part=True, cameras=3))
     est = estimate(capture)
@@ -80,11 +80,17 @@ def test_a_view_the_strip_explains_is_explained():
     assert _tip_mm(capture, est) < 1.5
     plate = _offsets(capture, forward_kinematics(capture.tape, est.angles).quads())
     assert plate.max() > POOR_OFFSET_PX >= est.view_offsets_px.max()
+    # Such an "ok" gets the second look a poor fit gets (its time counts both looks).
+    first = estimate(capture, second_look=False)
+    assert first.verdict is Verdict.OK and est.time_s > first.time_s
     a, b, c = np.array([1.0, 3.5]), np.array([2.0, 2.5]), np.array([3.2, 0.5])
     assert explaining_offsets(a, lambda: b) is b and explaining_offsets(a, lambda: c) is c
     assert explaining_offsets(c, lambda: a) is c and explaining_offsets(a, None) is a
-    # Not computed where the plate chain explains every view.
+    # Not computed where the plate chain explains every view, nor where it is far off.
     assert explaining_offsets(b, lambda: pytest.fail("computed")) is b
+    far = np.array([1.0, STRIP_PLATE_MAX_PX + 0.1])
+    assert explaining_offsets(far, lambda: b) is far
+    assert explaining_offsets(np.array([np.inf, 1.0]), lambda: b)[0] == np.inf
 
 
 @pytest.mark.parametrize("seed", [4100, 4101, 4102])
@@ -231,6 +237,17 @@ def test_unexplained_regions_near_the_tip():
     assert unexplained(band, model, tip, trunk)[1] >= 19
     assert unexplained(band, model, tip, trunk, half)[1] <= 7
     assert 55 <= unexplained(observed, model, tip, trunk, half)[1] <= 61
+    # A tip edge seen edge-on projects along the trunk: only its part across the trunk
+    # counts, so the sliver past the end is measured in full; a corner projected near the
+    # camera's plane (a huge half vector) counts no farther than 3 times the trunk's 10 mm.
+    assert 55 <= unexplained(observed, model, tip, trunk, np.array([45.0, 0.0]))[1] <= 61
+    assert 55 <= unexplained(observed, model, tip, trunk, np.array([40.0, 10.0]))[1] <= 61
+    long_band = model.copy()
+    long_band[:, 104:106] = 1                     # past the tip edge and 40 px beyond its corners
+    short_trunk = np.array([5.0, 0.0])            # 10 mm of trunk over 5 px: the cap is 15 px
+    assert unexplained(long_band, model, tip, short_trunk, half)[1] >= 39
+    assert unexplained(long_band, model, tip, short_trunk, np.array([0.0, 1e9]))[1] >= 44
+    assert unexplained(band, model, tip, np.array([10.0, 0.0]), np.array([np.nan, 1.0]))[1] >= 19
 
 
 def test_tape_past_the_models_end_is_never_ok():
