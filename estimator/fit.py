@@ -222,7 +222,8 @@ def _offsets(capture: Capture, quads: np.ndarray) -> np.ndarray:
 
 def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, shape, tip_position: np.ndarray,
            tip_rotation: np.ndarray, best_cost: float, hypotheses: list, strip_shape=None):
-    """(verdict, reason, tip_views, alternatives) of the output ``shape`` whose
+    """(verdict, reason, tip_views, alternatives, per-view offsets [px], whether the strip's
+    offsets judged) of the output ``shape`` whose
     ``view_costs`` ``evaluator`` gave; ``best_cost``: the plate fit's eq.-11 cost, the
     scale of the ``hypotheses`` [(cost, angles)]; ``strip_shape``: the strip the tip frame
     comes from, whose fit to the views may stand for the plate chain's

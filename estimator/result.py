@@ -55,7 +55,8 @@ class Estimate:
     verdict: whether a robot may act on it (:class:`Verdict`); verdict_reason: one line why.
     tip_views: how many cameras see the free end.
     view_offsets_px: per camera, the mean distance between the model's and the observed
-    silhouette boundaries [px] (what the verdict judges a view's fit by).
+    silhouette boundaries [px] (what the verdict judges a view's fit by: the plate chain's,
+    or the strip's where :func:`verdict.explaining_offsets` takes them).
     trace: the plate chain's angles (n, 3) after each optimiser iteration of the winner
     (``history`` holds their eq.-11 costs); for plots and recordings.
     alternatives: other distinct shapes within the verdict's cost margin, best first.
