@@ -176,14 +176,16 @@ def verdict_row(kind: str, name: str, capture: Capture, garbage: bool = False) -
 def verdict_summary(rows: Sequence[VerdictRow]) -> str:
     """Per kind of capture: "ok" rate, wrong "ok" (tip > 10 mm off, or any "ok" on garbage),
     needless refusals (not "ok" though the tip is within 3 mm and two cameras see it),
-    accuracy among "ok" and fit time; then the same over all captures."""
+    accuracy among "ok" and fit time; then the same over all captures, and over all but
+    the garbage masks (where "ok" is never right: the share of "ok" a tape's captures get)."""
     head = (f"{'kind':<12} {'n':>4} {'ok %':>6} {'wrong ok':>8} {'needless':>8} {'ambig':>5} {'hidden':>6} "
             f"{'poor':>5} {'error':>5} {'tip med':>7} {'tip p90':>7} {'tip max':>7} {'nrm med':>7} "
             f"{'t med':>6} {'t p95':>6}")
     lines = [head]
     kinds = list(dict.fromkeys(r.kind for r in rows))
-    for kind in kinds + ["all"]:
-        r = [x for x in rows if kind == "all" or x.kind == kind]
+    tape = "not garbage"
+    for kind in kinds + ["all"] + ([tape] if any(x.garbage for x in rows) else []):
+        r = [x for x in rows if kind == "all" or x.kind == kind or (kind == tape and not x.garbage)]
         if not r:
             continue
         ok = [x for x in r if x.verdict == "ok"]

@@ -25,3 +25,18 @@ def test_summary_reports_medians_speedup_and_time_per_camera_count():
 def test_summary_has_no_camera_split_for_one_camera_count():
     rows = [_row("default", 0.5, 0.010, 2), _row("default", 0.7, 0.012, 2)]
     assert "t med by" not in summary(rows, ["default"])
+
+
+def test_the_verdict_summary_counts_the_tape_captures_apart_from_garbage():
+    """bench.verdict_summary: the "all" row over every capture, and a "not garbage" row over
+    the captures of a tape, where "ok" can be right (a garbage mask's "ok" never is)."""
+    from tapecell.estimator.bench import VerdictRow, verdict_summary
+
+    rows = [VerdictRow("clean", "c-1", 2, "ok", 0.4, 1.0, 0.02, 2),
+            VerdictRow("clean", "c-2", 2, "hidden", 0.5, 1.0, 0.02, 2),
+            VerdictRow("garbage", "g-1", 2, "poor_fit", 9.0, 9.0, 0.02, 2, garbage=True)]
+    lines = {line.split()[0] if not line.startswith("not garbage") else "not garbage": line
+             for line in verdict_summary(rows).splitlines()[1:]}
+    assert lines["all"].split()[1:3] == ["3", "33.3"]
+    assert lines["not garbage"].split()[2:4] == ["2", "50.0"]
+    assert "not garbage" not in verdict_summary(rows[:2])
