@@ -218,6 +218,18 @@ refusing, made three of those grasps refusals (collisions) and one a slip. One o
 864185, found a plan only 10 mm farther in than its touches (48 mm): it is refused now."""
 
 
+def grasp_station_aims(est: Any, cfg: Any, inset: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(the grasp point (3,) [m], its frame (3, 3): trunk, left, normal, the points the needle
+    aims at keyed -1, 0, 1 as :func:`grasp_station` takes them) of a grasp ``inset`` [m] in
+    from the end of the estimate ``est``, as the planner places it
+    (:func:`tapecell.cell.planner.grasp_frame`, the cell file ``cfg``'s inset)."""
+    from .planner import GraspParams, TipFrame, grasp_frame
+
+    position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
+                                     est.nodes)
+    return position, rotation, {k: position + k * GRASP_STATION_M * rotation[:, 0] for k in (0, -1, 1)}
+
+
 def grasp_station(position: np.ndarray, rotation: np.ndarray, touched: dict) -> tuple[np.ndarray, float | None]:
     """(the tape's offset (3,) [m] from the grasp point ``position`` along the normal, the
     turn [deg] of the touched line off the trunk about the tape's width, None when an outer

@@ -53,8 +53,8 @@ from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
 from .tape import forward_kinematics
-from .verdict import (DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess, boundary_offsets,
-                      edgewise_bend, end_on, is_close_alternative, mask_fault, rival_reason, sizes)
+from .verdict import (DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess, edgewise_bend,
+                      end_on, is_close_alternative, mask_fault, rival_reason, view_offsets)
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -138,13 +138,13 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
     fallback = None
     strip = None
     if cfg.strip:
-        output = strip = first.strip(chain, angles, cfg)
+        strip = first.strip(chain, angles, cfg)
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
         # above the guard: the chain without the tip-frame pull, then the plate fit.
-        alternatives = [lambda: output(0.0)] if cfg.strip_frame_weight > 0 else []
+        alternatives = [lambda: strip(0.0)] if cfg.strip_frame_weight > 0 else []
         fallback = (cost, alternatives + [lambda: plate])
-        angles = output(cfg.strip_frame_weight)
+        angles = strip(cfg.strip_frame_weight)
         trace = trace + [angles]
     winner = plate if cfg.strip else angles
     return angles, trace, evaluator.evaluations, fallback, hypotheses(chain, pool, winner), strip
@@ -205,19 +205,26 @@ def _costed(capture: Capture, angles: np.ndarray):
     mask or the model is, and the evaluator that did it."""
     shape = forward_kinematics(capture.tape, angles)
     quads = shape.quads()
-    evaluator = CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views], capture.scene)
+    evaluator = _evaluator(capture, quads)
     return shape, evaluator.view_costs(quads), evaluator
+
+
+def _evaluator(capture: Capture, quads: np.ndarray) -> CostEvaluator:
+    """An evaluator of ``capture``'s views rendering only where the mask or ``quads`` are."""
+    return CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views], capture.scene)
+
+
+def _seen_models(evaluator: CostEvaluator, quads: np.ndarray) -> list[np.ndarray]:
+    """Each view's silhouette of ``quads`` where its pixels are known (not ignored)."""
+    return [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(quads), evaluator.targets)]
 
 
 def _offsets(capture: Capture, quads: np.ndarray) -> np.ndarray:
     """Per view, the mean boundary distance [px] between ``quads``' (m, 4, 3) silhouette and
-    the observed one (the verdict's measure, :func:`verdict.boundary_offsets`)."""
-    evaluator = CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views], capture.scene)
+    the observed one (the verdict's measure, :func:`verdict.view_offsets`)."""
+    evaluator = _evaluator(capture, quads)
     view_costs = evaluator.view_costs(quads)
-    targets = evaluator.targets
-    models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(quads), targets)]
-    areas, lengths = sizes([t.observed for t in targets])
-    return boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
+    return view_offsets(view_costs, [t.observed for t in evaluator.targets], _seen_models(evaluator, quads))
 
 
 def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, shape, tip_position: np.ndarray,
@@ -234,7 +241,7 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
             alt = forward_kinematics(capture.tape, a)
             near.append(Alternative(cost, alt.nodes[-1].copy(), alt.frames[-1].copy(), a))
     targets = evaluator.targets
-    models = [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(shape.quads()), targets)]
+    models = _seen_models(evaluator, shape.quads())
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
                [(a.cost, a.tip_position) for a in near],

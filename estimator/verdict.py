@@ -248,6 +248,14 @@ the shape a robot plans around (its faces are kept clear of the open gripper), a
 be far off where the strip is not."""
 
 
+def view_offsets(view_costs: np.ndarray, observed: Sequence[np.ndarray], models: Sequence[np.ndarray]) -> np.ndarray:
+    """(views,) mean boundary distance [px] of the model silhouettes ``models`` whose eq.-7
+    costs are ``view_costs`` against ``observed`` (uint8 0/1 crops): the outline length is
+    the shorter of the two (a mask of noise has a huge outline, the model's stays a tape's)."""
+    areas, lengths = sizes(observed)
+    return boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
+
+
 def explaining_offsets(plate_offsets: np.ndarray, strip_offsets: Callable[[], np.ndarray] | None) -> np.ndarray:
     """The per-view mean boundary distances [px] that judge whether the estimate explains
     the views: the plate chain's, or, where they leave a view unexplained (above
@@ -385,8 +393,8 @@ alike)."""
 
 def _from_segment(d: np.ndarray, half: np.ndarray | None) -> np.ndarray:
     """Distances [px] of image offsets ``d`` (k, 2) from the tip to the segment from -half
-    to +half (the tip edge; a point where ``half`` is None or not finite)."""
-    if half is None or not np.all(np.isfinite(half)) or float(half @ half) < 1e-9:
+    to +half (the tip edge, finite: see :func:`_across`; a point where ``half`` is None)."""
+    if half is None or float(half @ half) < 1e-9:
         return np.linalg.norm(d, axis=1)
     t = np.clip(d @ half / float(half @ half), -1.0, 1.0)
     return np.linalg.norm(d - t[:, None] * np.asarray(half, float), axis=1)
@@ -592,8 +600,7 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     frame comes from (the estimator's strip stage), which stand for the plate chain's where
     these do not explain a view and the strip's worst view is better explained (see
     :func:`explaining_offsets`)."""
-    areas, lengths = sizes(observed)
-    plate_offsets = boundary_offsets(view_costs, areas, np.minimum(lengths, sizes(models)[1]))
+    plate_offsets = view_offsets(view_costs, observed, models)
     offsets = explaining_offsets(plate_offsets, strip_offsets)
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])

@@ -17,9 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, GRASP_STATION_M, PAST_END_MAX_M, PROBE_CONFIRM_M,
-                                 PROBE_WIDE_MARGIN_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis,
-                                 replan_insets)
+from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M,
+                                 clearly_closest, end_measurable, hypotheses_to_probe, hypothesis, replan_insets)
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -805,15 +804,13 @@ def _grasp_point_touch(cell, sim_arm, est, inset: float, cfg, probes: list, note
     (3,) [m], or why the grasp is refused. ``notes``: ``probed_grasp_mm`` the touches'
     distances [mm] (the grasp point's first, then towards the base and past it),
     ``probed_grasp_off`` the offset [mm] and the turn [deg]."""
-    from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame
-    from tapecell.cell.probe import grasp_station, grasp_station_problem
+    from tapecell.cell.probe import grasp_station, grasp_station_aims, grasp_station_problem
 
-    position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
-                                     est.nodes)
+    position, rotation, aims = grasp_station_aims(est, cfg, inset)
     touched = {}
     with _Needle(cell, sim_arm, probes, notes) as needle:
         for k, label in ((0, "grasp point"), (-1, "before the grasp point"), (1, "past the grasp point")):
-            hit = needle.touch(label, position + k * GRASP_STATION_M * rotation[:, 0], rotation)
+            hit = needle.touch(label, aims[k], rotation)
             touched[k] = None if hit is None else hit[1]
             notes.setdefault("probed_grasp_mm", []).append(None if hit is None else round(1e3 * hit[0], 2))
             if hit is None:

@@ -279,11 +279,9 @@ def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, 
     GRASP_STATION_M apart along it, or the tape there lies more than GRASP_SHIFT_MAX_M off or
     turns more than GRASP_TURN_MAX_DEG off the estimate."""
     from tapecell.cell import probe
-    from tapecell.cell.planner import GraspParams, TipFrame, grasp_frame
     from tapecell.cell.ur import URArm
 
-    position, rotation = grasp_frame(TipFrame.from_estimate(est), inset, GraspParams.from_config(cfg.grasp).inset,
-                                     est.nodes)
+    position, rotation, aimed = probe.grasp_station_aims(est, cfg, inset)
     step = probe.GRASP_STATION_M
     where = ", ".join(f"{v * 1e3:.1f}" for v in position)
     labels = {0: f"middle where the jaw will hold it, {inset * 1e3:.0f} mm in from its end (about [{where}] mm)",
@@ -303,7 +301,6 @@ def _grasp_point_checked(cfg, est, inset: float, story, yes: bool, prompt=None, 
         raise TaskFailed("the needle was not put on the tape at all three points where the jaw will hold it (needed "
                          f"for a grasp {inset * 1e3:.0f} mm in from the end); nothing moved")
     touched = {k: np.asarray(points[label], float) for k, label in labels.items()}
-    aimed = {k: position + k * step * rotation[:, 0] for k in labels}
     story.add("probes", None, [{"label": labels[k], "aimed": aimed[k], "touched": touched[k], "t": None}
                                for k in labels])
     for k in labels:
