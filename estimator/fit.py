@@ -76,10 +76,11 @@ class FirstStage:
 
         starts = np.array(beam_search(capture.tape, self.fields, cfg=cfg))
         pool: list = []
-        angles, trace, cost = refine(chain, self.fields, starts, silhouette_costs, pool, cfg)
+        self.screens: dict = {}   # every start's screen, for both looks (refine.screened)
+        angles, trace, cost = refine(chain, self.fields, starts, silhouette_costs, pool, cfg, self.screens)
         # The classic silhouette ambiguity, a bend towards or away from the cameras: the
         # winner's mirror images are refined too, as hypotheses (and the winner if better).
-        a2, t2, c2 = refine(chain, self.fields, mirrors(angles), silhouette_costs, pool, cfg)
+        a2, t2, c2 = refine(chain, self.fields, mirrors(angles), silhouette_costs, pool, cfg, self.screens)
         if c2 < cost:
             angles, trace, cost = a2, t2, c2
         self.angles, self.trace, self.cost, self.pool = angles, trace, cost, pool
@@ -125,14 +126,15 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
             parts.append(np.array(beam_search(capture.tape, fields, cfg.grid_angles(wide=True),
                                               cfg.thorough_beam if thorough else cfg.wide_beam, cfg)))
         wide = np.concatenate(parts)
-        a2, t2, c2 = refine(chain, fields, wide, silhouette_costs, pool, cfg)
+        a2, t2, c2 = refine(chain, fields, wide, silhouette_costs, pool, cfg, first.screens)
         if c2 < cfg.wide_gain * cost:
             angles, trace, cost = a2, trace + t2, c2
         if thorough and cfg.hook_bends:
             # An end hooked back, out of sight behind the body: refined from the first
             # stage's winner (the default beam's, before any wide search); every refined
             # chain joins the hypotheses the needle can check.
-            a3, t3, c3 = refine(chain, fields, hooks(first.angles, cfg.hook_bends), silhouette_costs, pool, cfg)
+            a3, t3, c3 = refine(chain, fields, hooks(first.angles, cfg.hook_bends), silhouette_costs, pool, cfg,
+                                 first.screens)
             if c3 < cost:
                 angles, trace, cost = a3, first.trace + t3, c3
     fallback = None

@@ -14,17 +14,40 @@ from .verdict import DISTINCT_TIP_M
 from .views import Field
 
 
+def screened(chain: Chain, fields: list[Field], starts: np.ndarray, cfg: FitConfig = DEFAULT,
+             cache: dict | None = None):
+    """The screen of :func:`refine`: cfg.lm_screen Levenberg-Marquardt iterations on every
+    start (B, n, 3). Returns (params (B, P), robust cost (B,), (residuals, Jacobian) at them,
+    each start's iterates [[angles (n, 3)], ...]). ``cache``: the screens of one capture's
+    starts, by start, filled and reused (a second look refines again the branches the first
+    look's wide search refined): the batched solver treats every candidate on its own, so a
+    start screened alone or in another batch ends the same, bit for bit."""
+    flat = starts.reshape(len(starts), -1)
+    keys = [(s.tobytes(), cfg.lm_screen) for s in flat]
+    todo = [k for k, key in enumerate(keys) if cache is None or key not in cache]
+    done = {}
+    if todo:
+        log: list = []
+        p, c, (r, J, _) = levenberg_marquardt(chain, fields, flat[todo], cfg.lm_screen, log, cfg=cfg)
+        for i, k in enumerate(todo):
+            done[keys[k]] = (p[i], c[i], r[i], J[i], trace(log, i, chain.n))
+        if cache is not None:
+            cache.update(done)
+    rows = [done[key] if key in done else cache[key] for key in keys]
+    params, cost, r, J = (np.array([row[i] for row in rows]) for i in range(4))
+    return params, cost, (r, J), [row[4] for row in rows]
+
+
 def refine(chain: Chain, fields: list[Field], starts: np.ndarray, silhouette_costs, pool: list | None = None,
-           cfg: FitConfig = DEFAULT):
+           cfg: FitConfig = DEFAULT, cache: dict | None = None):
     """Local stage on candidate chains (B, n, 3): a few iterations on all at once, the
     best cfg.refine (by the robust cost) to convergence, ranked by the silhouette cost (eq.
     11). Returns (angles (n, 3), trace, eq.-11 cost) of the winner; appends every refined
     chain as (eq.-11 cost, angles) to ``pool`` (the hypotheses the verdict weighs), with
     the best cfg.alternatives screened candidates whose tips lie more than DISTINCT_TIP_M from
-    the refined ones' refined too (distinct shapes the robust cost ranked lower)."""
-    screen: list = []
-    params = starts.reshape(len(starts), -1)
-    params, cost, (r, J, _) = levenberg_marquardt(chain, fields, params, cfg.lm_screen, screen, cfg=cfg)
+    the refined ones' refined too (distinct shapes the robust cost ranked lower).
+    ``cache``: the capture's screens already made (:func:`screened`)."""
+    params, cost, (r, J), iterates = screened(chain, fields, starts, cfg, cache)
     # Screened by the robust cost (ranking all by eq. 11 was measured no better on the
     # samples and worse on sim captures); the silhouette cost (eq. 11) picks the winner.
     # The screen's residuals carry over: no re-evaluation at the kept candidates.
@@ -58,7 +81,7 @@ def refine(chain: Chain, fields: list[Field], starts: np.ndarray, silhouette_cos
     best = int(np.argmin(costs))
     if pool is not None:
         pool += [(float(c), a) for c, a in zip(costs, refined)]
-    return refined[best], trace(screen, keep[best], chain.n) + trace(converge, best, chain.n), float(costs[best])
+    return refined[best], iterates[keep[best]] + trace(converge, best, chain.n), float(costs[best])
 
 
 def mirrors(angles: np.ndarray) -> np.ndarray:

@@ -238,3 +238,35 @@ def test_a_view_missed_in_part_widens_the_search():
     est = estimate(c)
     assert est.verdict.value == "ok"
     assert errors(est.nodes, est.tip_rotation, c.truth, est.tip_position).tip_m < 0.002
+
+
+def test_a_start_screens_the_same_alone_in_a_batch_or_from_the_cache():
+    """refine.screened: the batched solver treats each candidate on its own, so a start's
+    screen (params, cost, residuals, Jacobian, iterates) is the same bit for bit alone, in a
+    batch, or taken from a look's cache, and refine() with a cache answers as without."""
+    from tapecell.estimator.fit import FirstStage
+    from tapecell.estimator.refine import refine, screened, variants
+    capture = _chain_capture(7)
+    chain = Chain(capture.tape, cfg=DEFAULT)
+    first = FirstStage(capture, chain, DEFAULT)
+    starts = variants(first.angles)[:6]
+    batch = screened(chain, first.fields, starts, DEFAULT)
+    alone = screened(chain, first.fields, starts[3:4], DEFAULT)
+    for got, want in zip(alone[:2] + alone[2], batch[:2] + batch[2]):
+        assert np.array_equal(got[0], want[3])
+    assert all(np.array_equal(a, b) for a, b in zip(alone[3][0], batch[3][3]))
+    cache: dict = {}
+    screened(chain, first.fields, starts[:4], DEFAULT, cache)
+    assert len(cache) == 4
+    mixed = screened(chain, first.fields, starts, DEFAULT, cache)   # 4 from the cache, 2 new
+    assert len(cache) == 6
+    for got, want in zip(mixed[:2] + mixed[2], batch[:2] + batch[2]):
+        assert np.array_equal(got, want)
+
+    def costs(angles):
+        return CostEvaluator([f.target for f in first.fields], capture.scene).costs(chain.quads(angles))
+
+    plain = refine(chain, first.fields, starts, costs, None, DEFAULT)
+    cached = refine(chain, first.fields, starts, costs, None, DEFAULT, cache)
+    assert np.array_equal(plain[0], cached[0]) and plain[2] == cached[2]
+    assert len(plain[1]) == len(cached[1]) and all(np.array_equal(a, b) for a, b in zip(plain[1], cached[1]))
