@@ -72,8 +72,8 @@ class SimCell:
         self.config = config
         self.n_cameras = n_cameras
         self.camera_names = [c.name for c in config.camera_placements(n_cameras)]
-        self.spec = build_spec(config, n_cameras)
-        self.model = self.spec.compile()
+        self.seed = seed
+        self.model = self._build_model()
         self.data = mujoco.MjData(self.model)
         # a view of the data's warning counters, read after every step (fetching it anew
         # each time cost a tenth of a step); compared as bytes with all zeros (a fifth of
@@ -81,15 +81,7 @@ class SimCell:
         self._warning_counts = self.data.warning.number
         self._no_warnings = bytes(self._warning_counts.nbytes)
         m = self.model
-        self._tape_geoms = np.array([m.geom(f"tape_{i}").id for i in range(config.tape.plates)])
-        self._tape_bodies = np.array([m.body(f"tape_{i}").id for i in range(config.tape.plates)])
-        self._tape_qadr = np.array([[m.jnt_qposadr[m.joint(f"tape_{i}_{h}").id] for h in ("twist", "flat", "edge")]
-                                    for i in range(config.tape.plates)])
-        self._tape_dofs = np.array([m.jnt_dofadr[m.joint(f"tape_{i}_{h}").id]
-                                    for i in range(config.tape.plates) for h in TAPE_HINGES])
-        self._tip_site = m.site("tape_tip").id
-        # Inertia weights of the tape's hinges for the kinetic energy used in settling.
-        self._tape_armature = m.dof_armature[self._tape_dofs] + m.dof_damping[self._tape_dofs] * m.opt.timestep
+        self._init_tape()
         self.arm_qadr = np.array([m.jnt_qposadr[m.joint(n).id] for n in JOINT_NAMES])
         self.arm_dofs = np.array([m.jnt_dofadr[m.joint(n).id] for n in JOINT_NAMES])
         self.arm_actuators = np.array([m.actuator(n).id for n in JOINT_NAMES])
@@ -109,7 +101,8 @@ class SimCell:
         # region unknown throws away the evidence that the tape is not there, which cost far
         # more than it gained (sim, 2 cameras, seeds 0-99: gross failures 5 -> 16).
         self._occluder_geoms = np.array([g for g in range(m.ngeom) if m.geom_group[g] >= GROUP_ARM])
-        self._is_tape_geom = np.zeros(m.ngeom + 1, bool)
+        # Indexed by a segmentation pixel's id (-1, the background, the last entry: False).
+        self._is_tape_geom = np.zeros(m.ngeom + 2, bool)
         self._is_tape_geom[self._tape_geoms] = True
         self._is_occluder = np.zeros(m.ngeom + 1, bool)
         self._is_occluder[self._occluder_geoms] = True
@@ -125,7 +118,6 @@ class SimCell:
         self.mounted_tool = ""
         self.mount_tool(tool or config.arm.mounted_tool)
         self.rest: RestShape | None = None
-        self.seed = seed
         self.timing = CaptureTiming(0.0, 0.0)
         # Called after every step() (e.g. to record the arm while it moves); None: nothing.
         self.step_hook: Callable[[], None] | None = None
@@ -139,6 +131,32 @@ class SimCell:
                           "geomgroup": self._option.geomgroup.copy()}
         self._tool_as_built = self.mounted_tool
         self.reset(seed)
+
+    def _build_model(self) -> mujoco.MjModel:
+        """The compiled cell (the plate tape's rest shape is set per seed by :meth:`reset`)."""
+        self.spec = build_spec(self.config, self.n_cameras)
+        return self.spec.compile()
+
+    def _init_tape(self) -> None:
+        """The model's tape ids: plates (geoms, bodies), hinges (qpos, dofs), tip site; the
+        settling's kinetic-energy weights and the speed it stops at."""
+        m, plates = self.model, self.config.tape.plates
+        self._tape_geoms = np.array([m.geom(f"tape_{i}").id for i in range(plates)])
+        self._tape_bodies = np.array([m.body(f"tape_{i}").id for i in range(plates)])
+        self._tape_qadr = np.array([[m.jnt_qposadr[m.joint(f"tape_{i}_{h}").id] for h in ("twist", "flat", "edge")]
+                                    for i in range(plates)])
+        self._tape_dofs = np.array([m.jnt_dofadr[m.joint(f"tape_{i}_{h}").id]
+                                    for i in range(plates) for h in TAPE_HINGES])
+        self._tip_site = m.site("tape_tip").id
+        # Inertia weights of the tape's hinges for the kinetic energy used in settling.
+        self._tape_armature = m.dof_armature[self._tape_dofs] + m.dof_damping[self._tape_dofs] * m.opt.timestep
+        self._settle_velocity = self.config.sim.settle_velocity
+        self._flex_pixel: int | None = None   # the segmentation id of a flex tape's pixels
+
+    def reusable_for(self, seed: int) -> bool:
+        """Can :meth:`reuse` reset this cell to ``seed``? (Always: the plate tape's rest shape
+        is its springs' reference angles.)"""
+        return True
 
     def reuse(self, seed: int) -> RestShape:
         """The cell as a new ``SimCell`` of the same config would be, at ``seed``: the model
@@ -196,9 +214,7 @@ class SimCell:
         m, d = self.model, self.data
         mujoco.mj_resetData(m, d)
         self.rest = rest_shape(self.config, self.seed)
-        # The springs' reference angles are the rest shape; start there so settling is short.
-        m.qpos_spring[self._tape_qadr] = self.rest.angles
-        d.qpos[self._tape_qadr] = self.rest.angles
+        self._reset_tape()
         q_arm = np.asarray(self.config.arm.park_joints if arm_joints is None else arm_joints, float)
         d.qpos[self.arm_qadr] = q_arm
         d.ctrl[self.arm_actuators] = q_arm
@@ -211,6 +227,12 @@ class SimCell:
         self._sleep_flag(self.tape_sleep)
         self.timing = CaptureTiming(time.perf_counter() - t0, self.timing.render_s)
         return self.rest
+
+    def _reset_tape(self) -> None:
+        """Put the tape at :attr:`rest` (after ``mj_resetData``)."""
+        # The springs' reference angles are the rest shape; start there so settling is short.
+        self.model.qpos_spring[self._tape_qadr] = self.rest.angles
+        self.data.qpos[self._tape_qadr] = self.rest.angles
 
     def set_tape_sleep(self, enabled: bool) -> None:
         """Let the tape sleep (MuJoCo's island sleeping, ``mjENBL_SLEEP``) while nothing
@@ -246,7 +268,7 @@ class SimCell:
         dofs = self._tape_dofs
         arm = self._tape_armature
         n_max = int(round(self.config.sim.settle_s / m.opt.timestep))
-        v_stop = self.config.sim.settle_velocity
+        v_stop = self._settle_velocity
         ke_prev = 0.0
         for i in range(1, n_max + 1):
             mujoco.mj_step(m, d)
@@ -346,6 +368,13 @@ class SimCell:
         """(n, 3) current hinge angles (twist, flat, edge) [rad] of the simulated plates."""
         return self.data.qpos[self._tape_qadr].copy()
 
+    def tape_gap(self, geom: int) -> float:
+        """Smallest distance [m] between geom ``geom`` (the needle) and the tape (<= 0:
+        contact), as MuJoCo measures it between geoms (``mj_geomDistance``)."""
+        m, d = self.model, self.data
+        fromto = np.zeros(6)
+        return float(min(mujoco.mj_geomDistance(m, d, geom, g, 0.05, fromto) for g in self._tape_geoms))
+
     def gripper_pad_contacts_with_tape(self) -> dict[str, int]:
         """Number of active contacts of each pad ("left", "right") with tape plates."""
         d = self.data
@@ -408,6 +437,8 @@ class SimCell:
             r.disable_segmentation_rendering()
         ids = seg[..., 0].copy()
         ids[seg[..., 1] != int(mujoco.mjtObj.mjOBJ_GEOM)] = -1
+        if self._flex_pixel is not None:
+            ids[seg[..., 1] == int(mujoco.mjtObj.mjOBJ_FLEX)] = self._flex_pixel
         return ids
 
     def true_mask(self, name: str) -> np.ndarray:

@@ -92,7 +92,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     story = Story([p.name for p in cfg.camera_placements(cameras)])
     try:
         t0 = time.perf_counter()
-        cell = _cell_for(cfg, seed, cameras)
+        cell = _cell_for(cfg, seed, cameras, drawn.get("tape_model", "chain"),
+                         drawn.get("tape_stiffness_scale", 1.0))
         apply_to_model(cell.model, drawn)
         sim_arm = SimArm(cell, tool="gripper")
         sim_arm.open_gripper()
@@ -248,21 +249,27 @@ _cache: dict[str, Any] = {}
 atexit.register(lambda: release_cell())
 
 
-def _cell_for(cfg, seed: int, cameras: int):
-    """A SimCell of ``cfg`` with ``cameras`` cameras at ``seed``, gripper mounted: the
-    process's kept one when it matches, else a new one."""
+def _cell_for(cfg, seed: int, cameras: int, tape_model: str = "chain", stiffness_scale: float = 1.0):
+    """A simulated cell of ``cfg`` with ``cameras`` cameras at ``seed``, gripper mounted, with
+    the plate tape (``tape_model`` "chain": a :class:`SimCell`) or the shell tape ("shell": a
+    :class:`~tapecell.sim.shell.ShellSimCell` whose Young's modulus is scaled by
+    ``stiffness_scale``): the process's kept one when it matches, else a new one."""
     import pickle
 
     from .cell import SimCell
 
-    key = (pickle.dumps(cfg), int(cameras))
+    key = (pickle.dumps(cfg), int(cameras), tape_model, float(stiffness_scale))
     cell = _cache.pop("cell", None)
     if cell is not None:
-        if REUSE_CELL and _cache.get("key") == key:
+        if REUSE_CELL and _cache.get("key") == key and cell.reusable_for(seed):
             cell.reuse(seed)
             return cell
         cell.close()
     _cache["key"] = key
+    if tape_model == "shell":
+        from .shell import ShellSimCell
+
+        return ShellSimCell(cfg, seed=seed, n_cameras=cameras, tool="gripper", stiffness_scale=stiffness_scale)
     return SimCell(cfg, seed=seed, n_cameras=cameras, tool="gripper")
 
 

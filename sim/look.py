@@ -1,7 +1,7 @@
 """The simulated cell as a recording shows it: the MuJoCo model's own geometry.
 
 :func:`body_look` lists the arm's links, the tools and the tape's plates with the
-primitive geoms attached to each (as :class:`~tapecell.cell.story.BodyLook`);
+primitive geoms attached to each (a flexible tape's vertices as small spheres) (as :class:`~tapecell.cell.story.BodyLook`);
 :class:`MotionSampler` takes every body's world pose, the joints and the gripper opening
 while the cell steps (``SimCell.step_hook``), for :meth:`Recorder.motion`. The sampler
 runs whether or not anything is recorded: the episode's stages read the same either way.
@@ -19,6 +19,8 @@ SAMPLE_PERIOD_S = 0.05
 """Cell time between two motion samples [s]."""
 TRUE_TAPE_RGBA = (40, 200, 40, 150)
 """The true tape's plates (the estimate is blue)."""
+FLEX_VERTEX_M = 0.0015
+"""Radius of the sphere drawn at each vertex of a flexible tape [m]."""
 
 _KINDS = {int(mujoco.mjtGeom.mjGEOM_BOX): "box", int(mujoco.mjtGeom.mjGEOM_CAPSULE): "capsule",
           int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder", int(mujoco.mjtGeom.mjGEOM_SPHERE): "sphere"}
@@ -54,6 +56,14 @@ def body_look(model: mujoco.MjModel) -> tuple[BodyLook, np.ndarray, dict[str, li
             size = tuple(float(v) for v in model.geom_size[g][:3 if kind == "box" else 2 if kind != "sphere" else 1])
             rgba = TRUE_TAPE_RGBA if group == GROUP_TAPE else tuple(int(round(255 * v)) for v in model.geom_rgba[g])
             shapes.append(Shape(j, kind, size, T, rgba))
+    # A flexible tape (the shell, sim.shell) has no geoms: each moving vertex is a small
+    # sphere of the true tape's colour.
+    for f in range(model.nflex):
+        adr, num = model.flex_vertadr[f], model.flex_vertnum[f]
+        for b in sorted({int(b) for b in model.flex_vertbodyid[adr:adr + num] if b > 0}):
+            names.append(f"tape/{model.body(b).name or f'vertex_{b}'}")
+            ids.append(b)
+            shapes.append(Shape(len(names) - 1, "sphere", (FLEX_VERTEX_M,), np.eye(4), TRUE_TAPE_RGBA))
     return BodyLook(tuple(names), tuple(shapes)), np.array(ids), tools
 
 

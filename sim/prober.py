@@ -6,7 +6,6 @@ the measured point (flange pose the arm reports composed with the needle offset)
 """
 from __future__ import annotations
 
-import mujoco
 import numpy as np
 
 from tapecell.cell.probe import ProbedPoint, ProbeError, ProbeParams, needle_world_from_tcp
@@ -19,17 +18,10 @@ class SimProber:
         self.sim, self.arm, self.params = sim_cell, sim_arm, params
         m = sim_cell.model
         self._needle = m.geom("needle").id
-        self._tape = [m.geom(f"tape_{i}").id for i in range(sim_cell.config.tape.plates)]
-        self._fromto = np.zeros(6)
-        self._mujoco = mujoco
 
     def gap(self) -> float:
-        """Smallest distance between the needle and any tape plate [m] (<= 0: contact)."""
-        m, d = self.sim.model, self.sim.data
-        best = np.inf
-        for g in self._tape:
-            best = min(best, self._mujoco.mj_geomDistance(m, d, self._needle, g, 0.05, self._fromto))
-        return float(best)
+        """Smallest distance between the needle and the tape [m] (<= 0: contact)."""
+        return self.sim.tape_gap(self._needle)
 
     def _go_to_standoff(self, label: str, point: np.ndarray, approach: np.ndarray) -> np.ndarray:
         """Joint move (closed-form IK, any roll of the needle about its axis) to the needle

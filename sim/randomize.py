@@ -17,7 +17,9 @@ Names (units in the name):
 - ``tape_rgb_jitter``: largest change of each of the tape's colour channels (0-1);
 - ``tape_width_mm``, ``tape_length_mm``, ``tape_thickness_mm``: the tape's dimensions;
 - ``tape_stiffness_scale``: factor on its bending and twist stiffness;
-- ``tape_model``: ``"chain"`` (the plate chain; the grasp episodes' only tape so far);
+- ``tape_model``: ``"chain"`` (the plate chain, the estimator's own model) or ``"shell"`` (a
+  MuJoCo flexible shell, :class:`~tapecell.sim.shell.ShellSimCell`: a tape that is not the
+  estimator's model, grasped like the chain);
 - ``calib_rot_deg``, ``calib_trans_mm``: calibration error: the estimator gets each camera
   turned by this angle about a random axis and moved by this distance in a random
   direction, while the scene renders with the true cameras;
@@ -45,7 +47,7 @@ shape uses the seed alone, so randomising does not change the shapes)."""
 NUMERIC = ("light_azimuth_deg", "light_elevation_deg", "light_intensity", "ambient", "tape_rgb_jitter",
            "tape_width_mm", "tape_length_mm", "tape_thickness_mm", "tape_stiffness_scale", "calib_rot_deg",
            "calib_trans_mm", "mask_noise")
-CHOICES = {"cameras": (2, 3), "tape_model": ("chain",)}
+CHOICES = {"cameras": (2, 3), "tape_model": ("chain", "shell")}
 NAMES = NUMERIC + tuple(CHOICES)
 LIMITS = {"light_elevation_deg": (0.0, 90.0), "light_intensity": (0.0, 2.0), "ambient": (0.0, 1.0),
           "tape_rgb_jitter": (0.0, 1.0), "tape_width_mm": (5.0, 60.0), "tape_length_mm": (60.0, 250.0),
@@ -132,9 +134,7 @@ def _check(name: str, value: Any, source: str) -> Any:
     if name in CHOICES:
         values = tuple(value) if isinstance(value, (list, tuple)) else (value,)
         if not values or any(v not in CHOICES[name] for v in values):
-            raise RandomizeError(f"{source}: {name} must be one of {CHOICES[name]}, got {value!r}"
-                                 + (" (the shell tape has no arm in the simulator yet: measure it with "
-                                    "scripts/bench_verdict.py --shell)" if name == "tape_model" else ""))
+            raise RandomizeError(f"{source}: {name} must be one of {CHOICES[name]}, got {value!r}")
         return values if len(values) > 1 else values[0]
     if isinstance(value, (list, tuple)):
         if len(value) != 2:

@@ -84,8 +84,9 @@ def tape_hinge_gains(cfg: CellConfig) -> list[dict[str, HingeGains]]:
     return out
 
 
-def build_spec(cfg: CellConfig, n_cameras: int) -> mujoco.MjSpec:
-    """The whole cell as an uncompiled spec."""
+def build_spec(cfg: CellConfig, n_cameras: int, tape: bool = True) -> mujoco.MjSpec:
+    """The whole cell as an uncompiled spec; ``tape``: with the plate tape (else without a
+    tape: ``sim.shell`` adds its flexible shell)."""
     spec = mujoco.MjSpec.from_file(str(ur5e_model_path()))
     spec.modelname = "tapecell"
     spec.compiler.degree = False
@@ -105,7 +106,8 @@ def build_spec(cfg: CellConfig, n_cameras: int) -> mujoco.MjSpec:
                      builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT, rgb1=[0.62, 0.62, 0.6], rgb2=[0.62, 0.62, 0.6],
                      width=16, height=16)
     _add_world(spec, cfg)
-    _add_tape(spec, cfg)
+    if tape:
+        _add_tape(spec, cfg)
     _add_tools(spec, cfg)
     _add_actuators(spec, cfg)
     _add_cameras(spec, cfg, n_cameras)

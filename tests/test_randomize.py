@@ -38,7 +38,7 @@ def test_draws_are_reproducible_per_seed_and_independent_per_setting():
     ({"light_intensity": True}, "finite number"),
     ({"tape_width_mm": [1.0, 2.0, 3.0]}, "number or a [lo, hi] range"),
     ({"cameras": [2, 4]}, "must be one of"),
-    ({"tape_model": "shell"}, "must be one of"),
+    ({"tape_model": "ribbon"}, "must be one of"),
 ])
 def test_bad_settings_are_named(table, words):
     with pytest.raises(RandomizeError, match=re.escape(words)):

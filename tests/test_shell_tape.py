@@ -53,3 +53,62 @@ def test_shell_seeds_differ_and_the_estimator_answers(cfg):
         est = estimate(c)
         if est.actionable:
             assert errors(est.nodes, est.tip_rotation, c.truth, est.tip_position).tip_m < 0.005
+
+
+def test_point_triangles_distance_matches_a_dense_sampling():
+    """The needle's distance to the sheet: the exact point-triangle distance, against the
+    closest of many points sampled on each triangle (vertex, edge and face regions alike)."""
+    from tapecell.sim.shell import point_triangles_distance
+
+    rng = np.random.default_rng(5)
+    a, b, c = (rng.normal(size=(40, 3)) for _ in range(3))
+    u, v = np.meshgrid(np.linspace(0, 1, 201), np.linspace(0, 1, 201))
+    inside = u + v <= 1.0
+    u, v = u[inside], v[inside]
+    for p in rng.normal(scale=2.0, size=(5, 3)):
+        exact = point_triangles_distance(p, a, b, c)
+        samples = a[:, None] + u[None, :, None] * (b - a)[:, None] + v[None, :, None] * (c - a)[:, None]
+        dense = np.linalg.norm(samples - p, axis=2).min(axis=1)
+        assert np.all(exact <= dense + 1e-12) and np.allclose(exact, dense, atol=0.02)
+
+
+def test_the_whole_cell_with_the_shell_tape_grasps_it(tmp_path):
+    """A grasp episode on the shell tape (``tape_model = "shell"``): the sheet in the whole
+    cell settles, is seen and fitted, the pads close on it from both sides (contacts on each
+    pad), the lift carries its tip along; the needle's distance to the sheet measures it;
+    a cell built for one seed refuses another."""
+    import json
+
+    from tapecell.sim.episode import release_cell, run_episode
+    from tapecell.sim.randomize import Randomize
+    from tapecell.sim.shell import ShellSimCell
+    from tapecell.sim.cell import SimError
+
+    doc = run_episode(902001, 2, tmp_path / "shell.rrd", randomize=Randomize({"tape_model": "shell"}))
+    release_cell()
+    json.dumps(doc)
+    assert doc["randomize"] == {"tape_model": "shell"}
+    assert doc["outcome"] == "grasped", doc
+    assert doc["pad_contacts"]["left"] > 0 and doc["pad_contacts"]["right"] > 0
+    assert doc["tip_error_mm"] < 3.0 and doc["lift_mm"] > 40.0 and doc["tip_follow_error_mm"] < 8.0
+    assert (tmp_path / "shell.rrd").stat().st_size > 0
+
+    cfg = load_cell_config()
+    with ShellSimCell(cfg, 902001, 2, tool="needle") as cell:
+        truth = cell.truth()
+        assert np.allclose(truth.points[0], cfg.tape.base_position, atol=1e-6)
+        assert np.allclose(cell.tape_tip_position(), truth.points[-1])
+        capture = cell.capture()
+        assert all(v.mask.any() for v in capture.views)
+        # The needle's gap: its tip's distance to the sheet less the sheet's radius.
+        needle = cell.model.geom("needle").id
+        tip_body = cell.model.geom_bodyid[needle]
+        gap = cell.tape_gap(needle)
+        assert gap > 0.05
+        assert gap == pytest.approx(np.linalg.norm(cell.data.xpos[tip_body] - cell.vertices().reshape(-1, 3), axis=1).min()
+                                    - cell.model.flex_radius[0], abs=0.02)
+        assert cell.reusable_for(902001) and not cell.reusable_for(902002)
+        with pytest.raises(SimError, match="built for seed 902001"):
+            cell.reset(902002)
+        with pytest.raises(SimError, match="no plates"):
+            cell.tape_frames()
