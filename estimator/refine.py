@@ -5,6 +5,8 @@ leaves); and the distinct shapes among everything refined (the hypotheses the ve
 weighs)."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from .chain import Chain
@@ -19,11 +21,16 @@ def screened(chain: Chain, fields: list[Field], starts: np.ndarray, cfg: FitConf
     """The screen of :func:`refine`: cfg.lm_screen Levenberg-Marquardt iterations on every
     start (B, n, 3). Returns (params (B, P), robust cost (B,), (residuals, Jacobian) at them,
     each start's iterates [[angles (n, 3)], ...]). ``cache``: the screens of one capture's
-    starts, by start, filled and reused (a second look refines again the branches the first
+    starts, by settings and start, filled and reused (a second look refines again the branches the first
     look's wide search refined): the batched solver treats every candidate on its own, so a
     start screened alone or in another batch ends the same, bit for bit."""
     flat = starts.reshape(len(starts), -1)
-    keys = [(s.tobytes(), cfg.lm_screen) for s in flat]
+    # A look's settings but the second look's own (its beam and hooks), which a screen
+    # does not read: a screen made under any other setting is not reused.
+    screen_cfg = dataclasses.replace(cfg, thorough_beam=DEFAULT.thorough_beam, fold_beam=DEFAULT.fold_beam,
+                                     hook_bends=DEFAULT.hook_bends)
+    cache = None if cache is None else cache.setdefault(screen_cfg, {})
+    keys = [s.tobytes() for s in flat]
     todo = [k for k, key in enumerate(keys) if cache is None or key not in cache]
     done = {}
     if todo:

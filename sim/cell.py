@@ -151,6 +151,7 @@ class SimCell:
         # Inertia weights of the tape's hinges for the kinetic energy used in settling.
         self._tape_armature = m.dof_armature[self._tape_dofs] + m.dof_damping[self._tape_dofs] * m.opt.timestep
         self._settle_velocity = self.config.sim.settle_velocity
+        self._settle_s = self.config.sim.settle_s
         self._flex_pixel: int | None = None   # the segmentation id of a flex tape's pixels
 
     def reusable_for(self, seed: int) -> bool:
@@ -267,7 +268,7 @@ class SimCell:
         m, d = self.model, self.data
         dofs = self._tape_dofs
         arm = self._tape_armature
-        n_max = int(round(self.config.sim.settle_s / m.opt.timestep))
+        n_max = int(round(self._settle_s / m.opt.timestep))
         v_stop = self._settle_velocity
         ke_prev = 0.0
         for i in range(1, n_max + 1):

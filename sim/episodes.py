@@ -6,6 +6,8 @@ flushed, so a crash loses nothing); a rerun skips the seeds already in it.
 """
 from __future__ import annotations
 
+import contextlib
+
 import json
 import math
 import multiprocessing as mp
@@ -283,7 +285,7 @@ def _run_in_processes(job_list: list[EpisodeJob], jobs: int,
             if doc is not None:
                 yield job, doc
             continue
-        with ProcessPoolExecutor(jobs, mp_context=ctx, max_tasks_per_child=50) as pool:
+        with ProcessPoolExecutor(jobs, mp_context=ctx, max_tasks_per_child=50) as pool, _stopped_on_exit(pool):
             running: dict[Any, EpisodeJob] = {}
             broken: list[EpisodeJob] = []
             while (queue or running) and not broken:
@@ -317,6 +319,24 @@ def _run_in_processes(job_list: list[EpisodeJob], jobs: int,
                         yield broken[0], doc
                 else:
                     solo.extend(broken)
+
+
+@contextlib.contextmanager
+def _stopped_on_exit(pool) -> Iterator[None]:
+    """On Ctrl-C, SIGTERM or any error inside: cancel the episodes not started and end the
+    pool's worker processes at once, instead of waiting for the episodes in flight (which
+    are lost, not written: a rerun runs them). Without this a second signal during that wait
+    left the command hanging with its workers idle."""
+    try:
+        yield
+    except BaseException:
+        processes = list((getattr(pool, "_processes", None) or {}).values())   # shutdown forgets them
+        pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.join(5.0)
+        raise
 
 
 def run_jobs(job_list: list[EpisodeJob], jobs: int = 1, backend: str = "process", address: str | None = None,

@@ -185,17 +185,24 @@ GRASP_RADIUS_M = 0.0005
 SHEET_SOLIMP = (0.99, 0.999, 0.0002, 0.5, 2.0)
 """Impedance of the pads' contacts with the sheet (MuJoCo's solimp: dmin, dmax, width [m],
 midpoint, power)."""
-SETTLE_VELOCITY_M_S = 2e-4
+SETTLE_VELOCITY_M_S = 3e-5
 """The whole cell's shell tape is settled when no vertex moves faster than this [m/s] (or
-after ``sim.settle_s``)."""
+after SETTLE_MAX_S)."""
+SETTLE_QUIET_STEPS = 50
+"""... for this many steps in a row, none of them a zeroing (see ShellSimCell.settle)."""
+SETTLE_MAX_S = 6.0
+"""Longest settling of the whole cell's shell tape [s] (at least ``sim.settle_s``): a soft
+sheet droops for seconds, and with the plate tape's 1 s one was still falling when the
+cameras took it (903036: its tip 63 mm lower at the grasp, which closed on air)."""
 
 
 class ShellSimCell(SimCell):
     """The whole cell (:class:`SimCell`: the arm, its tools, the part, the cameras) with the
     shell tape of ``seed`` in place of the plate chain: what a grasp episode with
     ``tape_model = "shell"`` runs on. The gripper's pads touch the sheet (flex contacts with
-    the plate tape's contact parameters); the needle's distance to it is its tip's distance
-    to the sheet's triangles (:meth:`tape_gap`).
+    the plate tape's stiffness and friction, a sharper impedance: :data:`SHEET_SOLIMP`); the
+    sheet is collided and rendered 1 mm thick (:data:`GRASP_RADIUS_M`); the needle's
+    distance to it is its tip disc's distance to the sheet's triangles (:meth:`tape_gap`).
 
     Differences from the plate tape's cell: the sheet's rest shape is compiled into the model
     (its vertices), so a cell serves its own seed only (:meth:`reusable_for`); the whole model
@@ -247,8 +254,8 @@ class ShellSimCell(SimCell):
         # Equal vertex masses: the kinetic energy's weights are all alike.
         self._tape_armature = np.ones(len(self._tape_dofs))
         self._settle_velocity = SETTLE_VELOCITY_M_S
+        self._settle_s = max(self.config.sim.settle_s, SETTLE_MAX_S)
         self._flex_pixel = m.ngeom          # the segmentation id its pixels get
-        self._flexgroup = GROUP_TAPE
 
     def reusable_for(self, seed: int) -> bool:
         """Only for its own seed: the sheet's rest shape is compiled into the model."""
@@ -262,6 +269,31 @@ class ShellSimCell(SimCell):
 
     def _reset_tape(self) -> None:
         """Nothing: ``mj_resetData`` puts the sheet's vertices at its rest shape."""
+
+    def settle(self) -> int:
+        """Dynamic relaxation as the plate tape's (:meth:`SimCell.settle`: velocities zeroed
+        whenever the kinetic energy passes a peak), stopping once no vertex has moved faster
+        than SETTLE_VELOCITY_M_S for SETTLE_QUIET_STEPS steps since the last zeroing (right
+        after one every vertex is slow while the sheet is still on its way), or after
+        SETTLE_MAX_S; returns the steps taken."""
+        m, d = self.model, self.data
+        dofs = self._tape_dofs
+        n_max = int(round(self._settle_s / m.opt.timestep))
+        ke_prev, quiet = 0.0, 0
+        for i in range(1, n_max + 1):
+            mujoco.mj_step(m, d)
+            v = d.qvel[dofs]
+            ke = float(np.dot(v, v))
+            if ke < ke_prev:
+                d.qvel[dofs] = 0.0
+                ke, quiet = 0.0, 0
+            ke_prev = ke
+            quiet = quiet + 1 if np.abs(v).max() < self._settle_velocity else 0
+            if quiet >= SETTLE_QUIET_STEPS:
+                break
+        mujoco.mj_kinematics(m, d)
+        self.check_warnings()
+        return i
 
     def _sleep_flag(self, on: bool) -> None:
         super()._sleep_flag(False)        # the sheet never sleeps
@@ -299,16 +331,24 @@ class ShellSimCell(SimCell):
         raise SimError("the shell tape has no hinge angles")
 
     def tape_gap(self, geom: int) -> float:
-        """Distance [m] from the tip of geom ``geom`` (the needle: its body's origin is the
-        tool's TCP, the needle's tip) to the sheet's mid-surface, less the sheet's
-        radius (its half thickness as collided and rendered; <= 0: contact): the needle meets the tape with its tip, approaching along
-        its normal."""
+        """Distance [m] from the tip of geom ``geom`` (the needle, a cylinder: its body's
+        origin is the tool's TCP, the centre of its tip disc) to the sheet's mid-surface,
+        less the sheet's radius (its half thickness as collided and rendered; <= 0:
+        contact): the nearest of the disc's centre and eight points on its rim. The needle
+        meets the tape with its tip, approaching along its axis; its shaft's side is not
+        measured (MuJoCo's geom distance, which the plate tape's cell uses, has no flex)."""
         v = self.vertices()             # (also brings the bodies' poses up to date)
-        tip = self.data.xpos[self.model.geom_bodyid[geom]]
+        m, d = self.model, self.data
+        R = d.geom_xmat[geom].reshape(3, 3)
+        turn = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
+        rim = m.geom_size[geom][0] * (np.outer(np.cos(turn), R[:, 0]) + np.outer(np.sin(turn), R[:, 1]))
+        centre = d.xpos[m.geom_bodyid[geom]]
+        points = np.vstack([centre, centre + rim])
         a, b, c = (np.concatenate([v[:-1, :-1], v[1:, 1:]]).reshape(-1, 3),
                    np.concatenate([v[1:, :-1], v[:-1, 1:]]).reshape(-1, 3),
                    np.concatenate([v[1:, 1:], v[:-1, :-1]]).reshape(-1, 3))
-        return float(point_triangles_distance(tip, a, b, c).min() - self.model.flex_radius[self._flex])
+        gaps = [np.nanmin(point_triangles_distance(p, a, b, c), initial=np.inf) for p in points]
+        return float(min(gaps) - m.flex_radius[self._flex])
 
     def gripper_pad_contacts_with_tape(self) -> dict[str, int]:
         """Number of active contacts of each pad ("left", "right") with the sheet."""
@@ -346,7 +386,8 @@ def _truth(v: np.ndarray) -> Truth:
 def point_triangles_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
     """(k,) distances [m] from point ``p`` (3,) to the triangles (a[i], b[i], c[i]) (k, 3)
     each: the closest point by its Voronoi region (vertex, edge or face; Ericson,
-    Real-Time Collision Detection, 5.1.5)."""
+    Real-Time Collision Detection, 5.1.5). NaN for a degenerate triangle that falls in
+    none of them (zero area)."""
     ab, ac, ap = b - a, c - a, p - a
     d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
     bp = p - b

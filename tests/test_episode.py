@@ -409,3 +409,33 @@ def test_campaign_keeps_only_the_failures_recordings(tmp_path, monkeypatch):
     results = run_episodes(range(4), 2, out, rrd="failures", worker=_worker)
     assert sorted(p.name for p in out.glob("*.rrd")) == ["episode-0001.rrd", "episode-0003.rrd"]
     assert [r.get("recording") for r in results] == [None, "episode-0001.rrd", None, "episode-0003.rrd"]
+
+
+def _sleep_long(seconds: float) -> float:
+    import time
+
+    time.sleep(seconds)
+    return seconds
+
+
+def test_an_interrupted_campaign_ends_its_workers_at_once():
+    """Ctrl-C or SIGTERM while a pool runs episodes: the pool's processes end at once (the
+    episodes in flight are lost; a rerun runs them), not after their episodes, and none is
+    left behind (a second signal during that wait once left the command hanging)."""
+    import multiprocessing as mp
+    import time
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tapecell.sim.episodes import _stopped_on_exit
+
+    processes = []
+    t0 = time.perf_counter()
+    with pytest.raises(KeyboardInterrupt):
+        with ProcessPoolExecutor(2, mp_context=mp.get_context("spawn")) as pool, _stopped_on_exit(pool):
+            futures = [pool.submit(_sleep_long, 60.0) for _ in range(3)]
+            time.sleep(1.0)
+            processes = list(pool._processes.values())
+            raise KeyboardInterrupt
+    assert time.perf_counter() - t0 < 30.0
+    assert processes and not any(p.is_alive() for p in processes)
+    assert futures[2].cancelled() or futures[2].done()
