@@ -20,29 +20,44 @@ def screened(chain: Chain, fields: list[Field], starts: np.ndarray, cfg: FitConf
              cache: dict | None = None):
     """The screen of :func:`refine`: cfg.lm_screen Levenberg-Marquardt iterations on every
     start (B, n, 3). Returns (params (B, P), robust cost (B,), (residuals, Jacobian) at them,
-    each start's iterates [[angles (n, 3)], ...]). ``cache``: the screens of one capture's
-    starts, by settings and start, filled and reused (a second look refines again the branches the first
-    look's wide search refined): the batched solver treats every candidate on its own, so a
-    start screened alone or in another batch ends the same, bit for bit."""
+    iterates: ``iterates[k]`` start k's iterated angles [(n, 3), ...], read on request).
+    ``cache``: the screens of one capture's starts, by settings and start, filled and reused
+    (a second look refines again the branches the first look's wide search refined): the
+    batched solver treats every candidate on its own, so a start screened alone or in
+    another batch ends the same, bit for bit."""
     flat = starts.reshape(len(starts), -1)
-    # A look's settings but the second look's own (its beam and hooks), which a screen
-    # does not read: a screen made under any other setting is not reused.
-    screen_cfg = dataclasses.replace(cfg, thorough_beam=DEFAULT.thorough_beam, fold_beam=DEFAULT.fold_beam,
-                                     hook_bends=DEFAULT.hook_bends)
-    cache = None if cache is None else cache.setdefault(screen_cfg, {})
     keys = [s.tobytes() for s in flat]
+    if cache is not None:
+        # A look's settings but the second look's own (its beam and hooks), which a screen
+        # does not read: a screen made under any other setting is not reused.
+        cache = cache.setdefault(dataclasses.replace(cfg, thorough_beam=DEFAULT.thorough_beam,
+                                                     fold_beam=DEFAULT.fold_beam, hook_bends=DEFAULT.hook_bends), {})
     todo = [k for k, key in enumerate(keys) if cache is None or key not in cache]
-    done = {}
+    log: list = []
     if todo:
-        log: list = []
         p, c, (r, J, _) = levenberg_marquardt(chain, fields, flat[todo], cfg.lm_screen, log, cfg=cfg)
-        for i, k in enumerate(todo):
-            done[keys[k]] = (p[i], c[i], r[i], J[i], trace(log, i, chain.n))
+    if len(todo) == len(keys):
+        # Nothing screened before (a look's first refinement): the solver's arrays as they are.
         if cache is not None:
-            cache.update(done)
-    rows = [done[key] if key in done else cache[key] for key in keys]
+            cache.update((keys[k], (p[k], c[k], r[k], J[k], log, k)) for k in todo)
+        return p, c, (r, J), _Iterates([(log, k) for k in range(len(keys))], chain.n)
+    done = {keys[k]: (p[i], c[i], r[i], J[i], log, i) for i, k in enumerate(todo)}
+    cache.update(done)
+    rows = [cache[key] for key in keys]
     params, cost, r, J = (np.array([row[i] for row in rows]) for i in range(4))
-    return params, cost, (r, J), [row[4] for row in rows]
+    return params, cost, (r, J), _Iterates([row[4:] for row in rows], chain.n)
+
+
+class _Iterates:
+    """Each start's iterates of a screen, read from the solver's logs when asked for
+    (:func:`refine` needs its winner's alone): ``sources[k]`` = (log, index in its batch)."""
+
+    def __init__(self, sources: list, n: int):
+        self._sources, self._n = sources, n
+
+    def __getitem__(self, k: int) -> list[np.ndarray]:
+        log, index = self._sources[k]
+        return trace(log, index, self._n)
 
 
 def refine(chain: Chain, fields: list[Field], starts: np.ndarray, silhouette_costs, pool: list | None = None,

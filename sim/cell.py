@@ -152,6 +152,7 @@ class SimCell:
         self._tape_armature = m.dof_armature[self._tape_dofs] + m.dof_damping[self._tape_dofs] * m.opt.timestep
         self._settle_velocity = self.config.sim.settle_velocity
         self._settle_s = self.config.sim.settle_s
+        self._settle_every, self._settle_quiet = 10, 1    # see settle()
         self._flex_pixel: int | None = None   # the segmentation id of a flex tape's pixels
 
     def reusable_for(self, seed: int) -> bool:
@@ -263,23 +264,26 @@ class SimCell:
         Dynamic relaxation: the tape is simulated as usual, but whenever its kinetic energy
         passes a peak its velocities are zeroed, so it slides into the static equilibrium
         within a few of its (slow, ~2 Hz) swings instead of ringing for seconds. Stops when
-        no tape hinge moves faster than ``sim.settle_velocity`` or after ``sim.settle_s``.
+        no tape hinge moves faster than ``sim.settle_velocity`` (tested every
+        ``_settle_every`` steps from the 20th on; a tape may ask for ``_settle_quiet`` steps
+        in a row that slow since the last zeroing) or after ``sim.settle_s``.
         """
         m, d = self.model, self.data
         dofs = self._tape_dofs
         arm = self._tape_armature
         n_max = int(round(self._settle_s / m.opt.timestep))
         v_stop = self._settle_velocity
-        ke_prev = 0.0
+        ke_prev, quiet = 0.0, 0
         for i in range(1, n_max + 1):
             mujoco.mj_step(m, d)
             v = d.qvel[dofs]
             ke = float(np.dot(arm, v * v))
             if ke < ke_prev:
                 d.qvel[dofs] = 0.0
-                ke = 0.0
+                ke, quiet = 0.0, 0
             ke_prev = ke
-            if i >= 20 and i % 10 == 0 and np.abs(v).max() < v_stop:
+            quiet = quiet + 1 if np.abs(v).max() < v_stop else 0
+            if i >= 20 and i % self._settle_every == 0 and quiet >= self._settle_quiet:
                 break
         mujoco.mj_kinematics(m, d)
         self.check_warnings()

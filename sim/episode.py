@@ -258,7 +258,7 @@ def _cell_for(cfg, seed: int, cameras: int, tape_model: str = "chain", stiffness
 
     from .cell import SimCell
 
-    key = (pickle.dumps(cfg), int(cameras), tape_model, float(stiffness_scale))
+    key = (pickle.dumps(cfg), int(cameras), tape_model)   # (the stiffness scale is in cfg's tape)
     cell = _cache.pop("cell", None)
     if cell is not None:
         if REUSE_CELL and _cache.get("key") == key and cell.reusable_for(seed):

@@ -7,7 +7,6 @@ flushed, so a crash loses nothing); a rerun skips the seeds already in it.
 from __future__ import annotations
 
 import contextlib
-
 import json
 import math
 import multiprocessing as mp

@@ -1,7 +1,8 @@
 """The simulated cell as a recording shows it: the MuJoCo model's own geometry.
 
 :func:`body_look` lists the arm's links, the tools and the tape's plates with the
-primitive geoms attached to each (a flexible tape's vertices as small spheres) (as :class:`~tapecell.cell.story.BodyLook`);
+primitive geoms attached to each, a flexible tape's vertices as small spheres (as
+:class:`~tapecell.cell.story.BodyLook`);
 :class:`MotionSampler` takes every body's world pose, the joints and the gripper opening
 while the cell steps (``SimCell.step_hook``), for :meth:`Recorder.motion`. The sampler
 runs whether or not anything is recorded: the episode's stages read the same either way.

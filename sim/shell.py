@@ -189,7 +189,7 @@ SETTLE_VELOCITY_M_S = 3e-5
 """The whole cell's shell tape is settled when no vertex moves faster than this [m/s] (or
 after SETTLE_MAX_S)."""
 SETTLE_QUIET_STEPS = 50
-"""... for this many steps in a row, none of them a zeroing (see ShellSimCell.settle)."""
+"""... for this many steps in a row, none of them a zeroing (see SimCell.settle)."""
 SETTLE_MAX_S = 6.0
 """Longest settling of the whole cell's shell tape [s] (at least ``sim.settle_s``): a soft
 sheet droops for seconds, and with the plate tape's 1 s one was still falling when the
@@ -255,6 +255,9 @@ class ShellSimCell(SimCell):
         self._tape_armature = np.ones(len(self._tape_dofs))
         self._settle_velocity = SETTLE_VELOCITY_M_S
         self._settle_s = max(self.config.sim.settle_s, SETTLE_MAX_S)
+        # Still for SETTLE_QUIET_STEPS steps since the relaxation last zeroed the sheet: right
+        # after a zeroing every vertex is slow while the sheet is still on its way.
+        self._settle_every, self._settle_quiet = 1, SETTLE_QUIET_STEPS
         self._flex_pixel = m.ngeom          # the segmentation id its pixels get
 
     def reusable_for(self, seed: int) -> bool:
@@ -269,31 +272,6 @@ class ShellSimCell(SimCell):
 
     def _reset_tape(self) -> None:
         """Nothing: ``mj_resetData`` puts the sheet's vertices at its rest shape."""
-
-    def settle(self) -> int:
-        """Dynamic relaxation as the plate tape's (:meth:`SimCell.settle`: velocities zeroed
-        whenever the kinetic energy passes a peak), stopping once no vertex has moved faster
-        than SETTLE_VELOCITY_M_S for SETTLE_QUIET_STEPS steps since the last zeroing (right
-        after one every vertex is slow while the sheet is still on its way), or after
-        SETTLE_MAX_S; returns the steps taken."""
-        m, d = self.model, self.data
-        dofs = self._tape_dofs
-        n_max = int(round(self._settle_s / m.opt.timestep))
-        ke_prev, quiet = 0.0, 0
-        for i in range(1, n_max + 1):
-            mujoco.mj_step(m, d)
-            v = d.qvel[dofs]
-            ke = float(np.dot(v, v))
-            if ke < ke_prev:
-                d.qvel[dofs] = 0.0
-                ke, quiet = 0.0, 0
-            ke_prev = ke
-            quiet = quiet + 1 if np.abs(v).max() < self._settle_velocity else 0
-            if quiet >= SETTLE_QUIET_STEPS:
-                break
-        mujoco.mj_kinematics(m, d)
-        self.check_warnings()
-        return i
 
     def _sleep_flag(self, on: bool) -> None:
         super()._sleep_flag(False)        # the sheet never sleeps
