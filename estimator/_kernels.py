@@ -267,13 +267,28 @@ def chain_points(angles, base_position, base_rotation, segment_lengths, width, p
 
 
 @njit(cache=True, fastmath=False)
+def _folds(a, b, s0, bx, by, u, v):
+    """Whether an outline segment counts: always for an edge (``a`` < 0); for a joint's
+    line across the tape (from corner ``s0`` along (bx, by) in the image [px]), only where
+    the tape folds there in the image: the points ``a`` and ``b`` either side of it (pixels
+    ``u``, ``v``) lie on the same side of its line."""
+    if a < 0:
+        return True
+    ca = bx * (v[a] - v[s0]) - by * (u[a] - u[s0])
+    cb = bx * (v[b] - v[s0]) - by * (u[b] - u[s0])
+    return ca * cb > 0.0
+
+
+@njit(cache=True, fastmath=False)
 def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns, edge, weight, segments,
-                   delta_out, delta_in, hidden, res, jac, row0):
+                   fold_of, delta_out, delta_in, hidden, res, jac, row0):
     """One view's part of residuals.residuals (no view shifts): coverage residuals of the
     observed outline (P) then the sample points' (ns) residuals.
 
     pts: (B, ns + 3m, 3) sample points then corners; J: their Jacobian (B, ., 3, N);
     hidden: (B, ns) sample points a scene box hides from this camera (cost nothing).
+    segments: (K, 4) the outline's segments (``Chain.segments``); fold_of: (ns,) each sample
+    point's joint line in them, or -1: a point on a joint that does not fold costs nothing.
     Writes the weighted residuals to ``res[:, row0:row0 + P + ns]`` and, with ``jacobian``,
     their Jacobian to ``jac[:, row0:row0 + P + ns]`` (B, ., N); returns the robust cost (B,).
     """
@@ -289,6 +304,7 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
     bx = np.empty(K)
     by = np.empty(K)
     inv_den = np.empty(K)
+    active = np.empty(K, np.bool_)
     for b in range(B):
         # corners: pixels and pixel Jacobian
         for c in range(nc):
@@ -307,6 +323,7 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
             bx[k] = cu[s1] - cu[s0]
             by[k] = cv[s1] - cv[s0]
             inv_den[k] = 1.0 / max(bx[k] * bx[k] + by[k] * by[k], 1e-9)
+            active[k] = _folds(segments[k, 2], segments[k, 3], s0, bx[k], by[k], cu, cv)
         rho_sum = 0.0
         for q in range(P):
             best = np.inf
@@ -315,6 +332,8 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
             rxb = 0.0
             ryb = 0.0
             for k in range(K):
+                if not active[k]:
+                    continue
                 s0 = segments[k, 0]
                 rx = outline[q, 0] - cu[s0]
                 ry = outline[q, 1] - cv[s0]
@@ -354,7 +373,7 @@ def view_residuals(pts, J, jacobian, cam, field, x0, y0, has_ignore, outline, ns
             centre = not edge[p]
             r = max(sdf, 0.0) if centre else sdf
             rho, w = _robust(r, edge[p] and sdf < 0, delta_out, delta_in)
-            if ignored or hidden[b, p]:
+            if ignored or hidden[b, p] or (fold_of[p] >= 0 and not active[fold_of[p]]):
                 rho = 0.0
                 w = 0.0
             rho_sum += rho * weight[p] ** 2
@@ -403,14 +422,15 @@ def _pairs(M: np.ndarray) -> tuple:
 
 
 def _chain_arrays(chain) -> tuple:
-    """The chain's fixed arrays in kernel form: (pair, pair_w, edge, weight, segments, base
-    position, base rotation, segment lengths, width); cached per chain."""
+    """The chain's fixed arrays in kernel form: (pair, pair_w, edge, weight, segments, fold_of,
+    base position, base rotation, segment lengths, width); cached per chain."""
     arrays = _chain_cache.get(chain)
     if arrays is None:
         pair, pair_w = _pairs(chain.M)
         spec = chain.spec
         arrays = (pair, pair_w, np.ascontiguousarray(chain.edge, np.bool_),
                   np.ascontiguousarray(chain.weight, float), np.ascontiguousarray(chain.segments, np.int64),
+                  np.ascontiguousarray(chain.fold_of, np.int64),
                   np.ascontiguousarray(spec.base_position, float), np.ascontiguousarray(spec.base_rotation, float),
                   np.ascontiguousarray(spec.segment_lengths, float), float(spec.width))
         _chain_cache[chain] = arrays
@@ -420,7 +440,7 @@ def _chain_arrays(chain) -> tuple:
 def points(chain, angles: np.ndarray, jacobian: bool):
     """Compiled ``Chain.points``: (B, n, 3) angles -> points (B, s + 3m, 3), Jacobian
     (B, s + 3m, 3, 3n) or None."""
-    pair, pair_w, _, _, _, pos, rot, lengths, width = _chain_arrays(chain)
+    pair, pair_w, _, _, _, _, pos, rot, lengths, width = _chain_arrays(chain)
     pts, J = chain_points(np.ascontiguousarray(angles, float), pos, rot, lengths, width, pair, pair_w, jacobian)
     return pts, (J if jacobian else None)
 
@@ -432,7 +452,7 @@ def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: flo
     0..R - ``extra`` hold each view's (coverage P_k, then the s sample points; a view's
     weight w scales its rows by sqrt(w) and its cost by w) and the last ``extra`` rows are
     left for the caller to fill."""
-    pair, pair_w, edge, weight, segments, pos, rot, lengths, width = _chain_arrays(chain)
+    pair, pair_w, edge, weight, segments, fold_of, pos, rot, lengths, width = _chain_arrays(chain)
     pts, J = chain_points(np.ascontiguousarray(angles, float), pos, rot, lengths, width, pair, pair_w, jacobian)
     B = len(pts)
     ns = chain.samples
@@ -443,7 +463,8 @@ def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: flo
     row = 0
     for f in fields:
         c = view_residuals(pts, J, jacobian, camera_params(f.camera), f.field, f.x0, f.y0, f.has_ignore,
-                           f.outline, ns, edge, weight, segments, delta_out, delta_in, hidden_points(f, pts[:, :ns]),
+                           f.outline, ns, edge, weight, segments, fold_of, delta_out, delta_in,
+                           hidden_points(f, pts[:, :ns]),
                            res, jac, row)
         rows = slice(row, row + len(f.outline) + ns)
         if f.weight != 1.0:
@@ -479,12 +500,13 @@ def warm() -> float:
     angles = np.zeros((1, n, 3))
     pair = np.array([[n + 1, n + 2]], np.int64)
     pair_w = np.array([[0.5, 0.5]])
-    segments = np.array([[n + 1, n + 2]], np.int64)
+    segments = np.array([[n + 1, n + 2, -1, -1]], np.int64)
     args = (np.zeros(3), np.eye(3), np.full(n, 0.01), 0.01, pair, pair_w)
     for jac in (False, True):
         pts, J = chain_points(angles, *args, jac)
         view_residuals(pts, J, jac, cam, field, 0, 0, True, np.zeros((2, 2)), 1, np.ones(1, np.bool_),
-                       np.ones(1), segments, 3.0, 1.5, np.zeros((1, 1), np.bool_), np.empty((1, 3)),
+                       np.ones(1), segments, np.full(1, -1, np.int64), 3.0, 1.5, np.zeros((1, 1), np.bool_),
+                       np.empty((1, 3)),
                        np.empty((1, 3, 3 * n) if jac else (0, 0, 0)), 0)
     outline_cost(pts, segments, cam, np.zeros((2, 2)), 3.0)
     for hid in (np.zeros((0, 0, 0), np.bool_), np.zeros((1,) + pts.shape[:2], np.bool_)):

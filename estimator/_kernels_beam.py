@@ -10,7 +10,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._kernels import _cell, _fma32, _huber, _project, _robust, camera_params
+from ._kernels import _cell, _fma32, _folds, _huber, _project, _robust, camera_params
 from ._kernels_boxes import HIDDEN_BEAM_COST, hidden_points
 
 
@@ -121,7 +121,7 @@ def best_totals(pts, n_edge, cams, sdf, flag, offsets, sizes, origins, has_ignor
 @njit(cache=True, fastmath=False)
 def outline_cost(corners, segments, cam, obs, delta_out):
     """Coverage score of complete beam chains in one view: (C, M, 3) corners, outline
-    segments (S, 2) as corner indices, observed outline points (P, 2) -> (C,) summed Huber
+    segments (S, 4) as corner indices (see ``Chain.segments``), observed outline points (P, 2) -> (C,) summed Huber
     losses of each point's distance to the nearest segment."""
     C, M = corners.shape[0], corners.shape[1]
     S = segments.shape[0]
@@ -132,6 +132,7 @@ def outline_cost(corners, segments, cam, obs, delta_out):
     bx = np.empty(S)
     by = np.empty(S)
     den = np.empty(S)
+    active = np.empty(S, np.bool_)
     for c in range(C):
         for k in range(M):
             u[k], v[k], x, y, z = _project(cam, corners[c, k, 0], corners[c, k, 1], corners[c, k, 2])
@@ -139,10 +140,13 @@ def outline_cost(corners, segments, cam, obs, delta_out):
             bx[k] = u[segments[k, 1]] - u[segments[k, 0]]
             by[k] = v[segments[k, 1]] - v[segments[k, 0]]
             den[k] = max(bx[k] * bx[k] + by[k] * by[k], 1e-9)
+            active[k] = _folds(segments[k, 2], segments[k, 3], segments[k, 0], bx[k], by[k], u, v)
         total = 0.0
         for q in range(P):
             best = np.inf
             for k in range(S):
+                if not active[k]:
+                    continue
                 rx = obs[q, 0] - u[segments[k, 0]]
                 ry = obs[q, 1] - v[segments[k, 0]]
                 t = min(max((rx * bx[k] + ry * by[k]) / den[k], 0.0), 1.0)

@@ -12,9 +12,11 @@ from .tape import TapeSpec
 
 
 @functools.lru_cache(maxsize=16)
-def _chain_layout(n: int, tip_weight: float, edge_t: tuple, centre_t: tuple, tip_t: tuple):
+def _chain_layout(n: int, tip_weight: float, edge_t: tuple, centre_t: tuple, tip_t: tuple, crease_t: tuple = ()):
     """The sample-point layout of an n-plate chain (see :class:`_Chain`), built once per n:
-    (M, edge, weight, segments, moves), shared: not to be written."""
+    (M, edge, weight, segments, moves, fold_of), shared: not to be written. ``crease_t``:
+    sample points along each joint's line across the tape (FitConfig.crease_t; empty: the
+    joints' lines are no part of the outline)."""
     m = n + 1
     rows, edge = [], []
     # corners: index k -> P_C[k], m + k -> P_L[k], 2m + k -> P_R[k]
@@ -39,19 +41,34 @@ def _chain_layout(n: int, tip_weight: float, edge_t: tuple, centre_t: tuple, tip
             w[i] = t
             rows.append(w)
             edge.append(False)
+    # The joints' lines across the tape, where the tape folds in the image (FitConfig.crease_t):
+    # sample points on the outline there, each counted only while its joint folds (fold_of).
+    creases = [(k, t) for k in range(1, n) for t in crease_t]
+    for k, t in creases:
+        w = np.zeros(3 * m)
+        w[m + k] = 1 - t
+        w[2 * m + k] = t
+        rows.append(w)
+        edge.append(True)
     M = np.array(rows)
     edge = np.array(edge)
     # The tip is what the robot grasps: its plate's edges and the tip edge count more.
     tip = M[:, [m + n, 2 * m + n]].sum(axis=1) > 0
     weight = np.where(tip & edge, tip_weight, 1.0)
-    # silhouette outline segments as corner index pairs: left, right, tip and base edges
-    left = [(m + k, m + k + 1) for k in range(n)]
-    right = [(2 * m + k, 2 * m + k + 1) for k in range(n)]
-    segments = np.array(left + right + [(m + n, 2 * m + n), (m, 2 * m)])
+    # silhouette outline segments as corner index pairs: left, right, tip and base edges,
+    # and with ``crease_t`` the joints' lines across the tape (FitConfig.crease_t),
+    # each with the centre nodes either side of it (the fold test); (-1, -1) for the edges
+    left = [(m + k, m + k + 1, -1, -1) for k in range(n)]
+    right = [(2 * m + k, 2 * m + k + 1, -1, -1) for k in range(n)]
+    across = [(m + k, 2 * m + k, k - 1, k + 1) for k in range(1, n)] if crease_t else []
+    segments = np.array(left + right + [(m + n, 2 * m + n, -1, -1), (m, 2 * m, -1, -1)] + across)
+    # each sample point's joint line (its index in segments), -1 for the others
+    fold_of = np.full(len(M), -1, np.int64)
+    fold_of[len(M) - len(creases):] = [2 * n + 2 + k - 1 for k, _ in creases]
     # corner c belongs to the frame of node c % m: it moves with joints 1..c % m
     node_of = np.tile(np.arange(m), 3)
     moves = (node_of[:, None] >= np.arange(1, m)[None, :]).astype(float)  # (3m, n)
-    return M, edge, weight, segments, moves
+    return M, edge, weight, segments, moves, fold_of
 
 
 class Chain:
@@ -67,9 +84,9 @@ class Chain:
         self.cfg = cfg
         edge_t = cfg.edge_t if edge_t is None else edge_t
         centre_t = cfg.centre_t if centre_t is None else centre_t
-        self.M, self.edge, self.weight, self.segments, self.moves = _chain_layout(
+        self.M, self.edge, self.weight, self.segments, self.moves, self.fold_of = _chain_layout(
             spec.n, float(cfg.tip_weight), tuple(float(t) for t in edge_t), tuple(float(t) for t in centre_t),
-            tuple(float(t) for t in cfg.tip_t))
+            tuple(float(t) for t in cfg.tip_t), tuple(float(t) for t in cfg.crease_t))
         self.samples = len(self.M)
 
     def corners(self, angles: np.ndarray):

@@ -50,6 +50,17 @@ class FitConfig:
     centre_t: tuple = (0.5, 1.0)
     """Centre-line sample points on each plate (fractions of its length)."""
 
+    crease_t: tuple = (0.25, 0.5, 0.75)
+    """The model's outline holds, besides the plates' side, tip and base edges, each joint's
+    line across the tape where the tape folds there in the image (the plates either side of
+    it on one side of it): where a tape curls towards or away from a camera, the silhouette's
+    edge is the fold. Coverage residuals measure the observed outline against it, and these
+    sample points along it (fractions of the width) are edge points while it folds. Without
+    it a curl's right shape paid for an outline its edges do not reach, and the fit
+    preferred a shape ending at the fold. Empty: no joints' lines."""
+    strip_crease_t: tuple = (0.25, 0.5, 0.75)
+    """The same for the strip's fine chain (``crease_t``)."""
+
     # global search (estimator/search.py)
     beam: int = 8
     """Partial chains kept per node in the global stage."""

@@ -97,6 +97,17 @@ def huber(d: np.ndarray, cfg: FitConfig = DEFAULT) -> tuple[np.ndarray, np.ndarr
     return rho, np.where(small, 1.0, cfg.delta_out_px / np.maximum(d, 1e-12))
 
 
+def folds(segments: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(B, K) which outline segments (K, 4) count for corner pixels ``u``, ``v`` (B, .):
+    every edge, and a joint's line only where the tape folds there in the image (the
+    points either side of it lie on one side of its line)."""
+    s0, s1, a, b = (segments[:, i] for i in range(4))
+    bx, by = u[:, s1] - u[:, s0], v[:, s1] - v[:, s0]
+    ca = bx * (v[:, a] - v[:, s0]) - by * (u[:, a] - u[:, s0])
+    cb = bx * (v[:, b] - v[:, s0]) - by * (u[:, b] - u[:, s0])
+    return (a < 0)[None, :] | (ca * cb > 0)
+
+
 def coverage(chain, f, u, v, Juv, cfg: FitConfig = DEFAULT):
     """Observed outline points' distance to the model's outline: every part of the observed
     silhouette must be explained (the reverse of the edge term). u, v: (B, 3m) corner
@@ -122,6 +133,7 @@ def coverage(chain, f, u, v, Juv, cfg: FitConfig = DEFAULT):
     ry -= t * by3
     d2 = rx * rx
     d2 += ry * ry
+    d2 = np.where(folds(chain.segments, u, v)[:, None, :], d2, np.inf)
     k = np.argmin(d2, axis=2)[..., None]                                # (B, P, 1)
     d = np.sqrt(np.take_along_axis(d2, k, 2)[..., 0]) + 1e-9            # (B, P)
     rho, w = huber(d, cfg)
@@ -249,6 +261,10 @@ def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, cfg: FitConfig
             ignored = behind if ignored is None else ignored | behind
         r = np.where(centre, np.maximum(sdf, 0.0), sdf)
         rho, w = robust(r, chain.edge & (sdf < 0), cfg)
+        # A joint's line is outline only where the tape folds there in the image.
+        fold_of = chain.fold_of
+        off = (fold_of >= 0)[None, :] & ~np.take(folds(chain.segments, u[:, ns:], v[:, ns:]), np.maximum(fold_of, 0), axis=1)
+        ignored = off if ignored is None else ignored | off
         if ignored is not None:
             rho = np.where(ignored, 0.0, rho)
             w = np.where(ignored, 0.0, w)
@@ -287,6 +303,8 @@ def beam_outline_cost(f, corners: np.ndarray, seg: np.ndarray, obs: np.ndarray, 
     t = np.clip((rx * bx[:, None] + ry * by[:, None]) / den, 0.0, 1.0)
     rx -= t * bx[:, None]
     ry -= t * by[:, None]
-    d = np.sqrt(np.min(rx * rx + ry * ry, axis=2))
+    d2 = rx * rx + ry * ry
+    d2 = np.where(folds(seg, u, v)[:, None, :], d2, np.inf)
+    d = np.sqrt(np.min(d2, axis=2))
     rho, _ = huber(d, cfg)
     return rho.sum(axis=1)

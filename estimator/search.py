@@ -91,8 +91,9 @@ def beam_search(spec: TapeSpec, fields: list[Field], grid: np.ndarray | None = N
     # Complete chains: add the coverage of the observed outline, keep the best.
     corners = np.concatenate([lefts, rights], axis=1)               # (c, 2(n+1), 3)
     m = n + 1
-    seg = np.array([(k, k + 1) for k in range(n)] + [(m + k, m + k + 1) for k in range(n)]
-                   + [(n, m + n), (0, m)])
+    # Outline segments as in Chain.segments: the side, tip and base edges.
+    seg = np.array([(k, k + 1, -1, -1) for k in range(n)] + [(m + k, m + k + 1, -1, -1) for k in range(n)]
+                   + [(n, m + n, -1, -1), (0, m, -1, -1)])
     for f in fields:
         if len(f.outline) == 0:
             continue

@@ -96,18 +96,27 @@ def test_beam_scores_match_reference(prepared):
     order = np.argsort(full)
     assert np.array_equal(np.argsort(best)[:10], order[:10]) and np.array_equal(best[order[:10]], full[order[:10]])
     assert np.all(best[order[10:]] >= full[order[9]]) and np.isinf(best).sum() > 20
+    # The complete chains' coverage: edges always, joints' lines (the last two segments,
+    # their neighbours either side) only where the points either side lie on one side.
+    seg = np.array([(k, k + 1, -1, -1) for k in range(11)] + [(2, 8, 1, 3), (4, 10, 3, 5)])
     for f in fields:
         corners = pts[0, :, :12]
-        seg = np.array([(k, k + 1) for k in range(11)])
         cu, cv, *_ = reference.project(f.camera, corners)
         ax, ay = cu[:, seg[:, 0]], cv[:, seg[:, 0]]
         bx, by = cu[:, seg[:, 1]] - ax, cv[:, seg[:, 1]] - ay
+        side = [bx[:, k] * (cv[:, n] - ay[:, k]) - by[:, k] * (cu[:, n] - ax[:, k]) for k, n in
+                ((11, 1), (11, 3), (12, 3), (12, 5))]
+        folds = np.ones(bx.shape, bool)
+        folds[:, 11], folds[:, 12] = side[0] * side[1] > 0, side[2] * side[3] > 0
+        assert folds[:, 11:].any() and not folds[:, 11:].all()    # both cases are tested
         rx = f.outline[None, :, 0, None] - ax[:, None]
         ry = f.outline[None, :, 1, None] - ay[:, None]
         t = np.clip((rx * bx[:, None] + ry * by[:, None]) / np.maximum(bx * bx + by * by, 1e-9)[:, None], 0.0, 1.0)
-        d = np.sqrt(np.min((rx - t * bx[:, None]) ** 2 + (ry - t * by[:, None]) ** 2, axis=2))
+        d2 = np.where(folds[:, None], (rx - t * bx[:, None]) ** 2 + (ry - t * by[:, None]) ** 2, np.inf)
+        d = np.sqrt(np.min(d2, axis=2))
         got = _kernels_beam.beam_outline_cost(f, corners, seg, f.outline, DEFAULT.delta_out_px)
         assert np.allclose(got, reference.huber(d)[0].sum(axis=1), rtol=1e-12, atol=0)
+        assert np.allclose(got, reference.beam_outline_cost(f, corners, seg, f.outline), rtol=1e-12, atol=0)
 
 
 def test_beam_candidates_match_reference(prepared):

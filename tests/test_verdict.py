@@ -41,7 +41,20 @@ def test_a_shape_bent_within_the_tapes_plane_is_not_ok(seed):
     capture = make_capture(seed, SyntheticOptions(part=True, cameras=2))
     est = estimate(capture)
     assert est.verdict is not Verdict.OK or _tip_mm(capture, est) < 5.0, f"ok {_tip_mm(capture, est):.1f} mm off"
+    # The rule itself, on the shape the fit found before the joints' lines were outline
+    # (FitConfig.crease_t; now it finds another shape, refused as well).
+    est = estimate(capture, config=dataclasses.replace(DEFAULT_CONFIG, crease_t=()))
     assert est.verdict is Verdict.POOR_FIT and "bends within the tape's plane" in est.verdict_reason
+
+
+def test_a_curl_whose_fold_is_the_silhouettes_edge_is_not_taken_for_its_end():
+    """A fresh part capture (907000) whose tape curls through 150 deg, its end going behind
+    the part from one camera: the silhouette's edge at the curl is the tape's fold, not its
+    end. The model's outline lacked the joints' lines (FitConfig.crease_t), so the shape
+    ending at the fold cost less, and it was "ok" 42 mm off."""
+    capture = make_capture(907000, SyntheticOptions(part=True, cameras=2))
+    est = estimate(capture)
+    assert est.verdict is not Verdict.OK or _tip_mm(capture, est) < 5.0, f"ok {_tip_mm(capture, est):.1f} mm off"
 
 
 def test_edgewise_bend_of_a_plate_chain():
@@ -78,10 +91,16 @@ def test_a_view_the_strip_explains_is_explained():
     est = estimate(capture)
     assert est.verdict is Verdict.OK, est.verdict_reason
     assert _tip_mm(capture, est) < 1.5
+    # The plate chain whose model outline holds the joints' lines (FitConfig.crease_t)
+    # explains that stretch itself; the one without them (nor in the strip) is the case here.
+    plain = dataclasses.replace(DEFAULT_CONFIG, crease_t=(), strip_crease_t=())
+    est = estimate(capture, config=plain)
+    assert est.verdict is Verdict.OK, est.verdict_reason
+    assert _tip_mm(capture, est) < 1.5
     plate = _offsets(capture, forward_kinematics(capture.tape, est.angles).quads())
     assert plate.max() > POOR_OFFSET_PX >= est.view_offsets_px.max()
     # Such an "ok" gets the second look a poor fit gets (its time counts both looks).
-    first = estimate(capture, second_look=False)
+    first = estimate(capture, second_look=False, config=plain)
     assert first.verdict is Verdict.OK and est.time_s > first.time_s
     a, b, c = np.array([1.0, 3.5]), np.array([2.0, 2.5]), np.array([3.2, 0.5])
     assert explaining_offsets(a, lambda: b) is b and explaining_offsets(a, lambda: c) is c
@@ -493,7 +512,7 @@ def test_a_hairpin_fold_at_the_end_gets_the_thorough_look():
     its body in a hairpin. The first look misses the hairpin and returns a shape bending
     sideways at the end, 20 mm off, that it calls "ok"; its end turns more than END_FOLD_DEG
     from the plate before the last, so it gets the thorough look, which finds the
-    hairpin: not "ok", the true shape an alternative within 1 mm."""
+    hairpin: not "ok", the true shape an alternative within 1.5 mm."""
     from tapecell.estimator import forward_kinematics, load_capture
     from tapecell.estimator.verdict import END_FOLD_DEG
 
@@ -504,7 +523,7 @@ def test_a_hairpin_fold_at_the_end_gets_the_thorough_look():
     assert frames[-2][:, 0] @ first.tip_rotation[:, 0] < np.cos(np.radians(END_FOLD_DEG))
     est = estimate(capture)
     assert est.verdict is not Verdict.OK
-    assert min(np.linalg.norm(a.tip_position - capture.truth.tip_position) for a in est.alternatives) < 0.001
+    assert min(np.linalg.norm(a.tip_position - capture.truth.tip_position) for a in est.alternatives) < 0.0015
 
 
 def test_an_end_hooked_back_out_of_sight_is_found_by_the_thorough_look():
@@ -513,20 +532,23 @@ def test_an_end_hooked_back_out_of_sight_is_found_by_the_thorough_look():
     returns a shape 45 mm off, "hidden"; the thorough look refines the first stage's winner with
     its end hooked back (FitConfig.hook_bends) and finds the true shape within 2 mm, which
     explains the views better, with the first as an alternative for the needle. Without
-    the hooks the thorough look does not find it."""
-    import dataclasses
-
+    the hooks the thorough look does not find it. (So it is without the joints' lines in
+    the model's outline, FitConfig.crease_t; with them the first look finds the hook.)"""
     from tapecell.estimator import load_capture
     from tapecell.estimator.config import DEFAULT
 
     capture = load_capture(DATA / "sim-chain-c2-857182")
-    first = estimate(capture, second_look=False)
+    now = estimate(capture, second_look=False)
+    assert _tip_mm(capture, now) < 2.0
+    assert _tip_mm(capture, estimate(capture)) < 2.0
+    plain = dataclasses.replace(DEFAULT, crease_t=())
+    first = estimate(capture, second_look=False, config=plain)
     assert first.verdict is Verdict.HIDDEN and _tip_mm(capture, first) > 10.0
-    est = estimate(capture)
+    est = estimate(capture, config=plain)
     assert _tip_mm(capture, est) < 2.0 and est.cost < first.cost
     assert est.verdict is not Verdict.OK   # the first look's shape is a close rival: the needle decides
     assert any(np.linalg.norm(a.tip_position - first.tip_position) < 0.001 for a in est.alternatives)
-    unhooked = estimate(capture, config=dataclasses.replace(DEFAULT, hook_bends=()))
+    unhooked = estimate(capture, config=dataclasses.replace(plain, hook_bends=()))
     assert _tip_mm(capture, unhooked) > 10.0
 
 
@@ -534,15 +556,20 @@ def test_an_end_seen_end_on_gets_the_thorough_look():
     """A simulated episode's capture (seed 839020, 2 cameras): the first look's answer is
     "ok" 14.9 mm off, its end 13 deg from the second camera's line of sight (END_ON_DEG).
     That view leaves the end's depth less constrained, so the estimate gets the thorough
-    look, which finds the true shape (within 2 mm) and explains the views better."""
+    look, which finds the true shape (within 2 mm) and explains the views better. (So it
+    is without the joints' lines in the model's outline, FitConfig.crease_t; with them the
+    first look's answer is "hidden".)"""
     from tapecell.estimator import load_capture
     from tapecell.estimator.verdict import end_on
 
     capture = load_capture(DATA / "sim-chain-c2-839020")
-    first = estimate(capture, second_look=False)
+    now = estimate(capture)
+    assert now.verdict is not Verdict.OK or _tip_mm(capture, now) < 2.0
+    plain = dataclasses.replace(DEFAULT_CONFIG, crease_t=())
+    first = estimate(capture, second_look=False, config=plain)
     assert first.verdict is Verdict.OK and _tip_mm(capture, first) > 10.0
     assert any(end_on(v, first.tip_position, first.tip_rotation) for v in capture.views)
-    est = estimate(capture)
+    est = estimate(capture, config=plain)
     assert _tip_mm(capture, est) < 2.0 and est.cost < first.cost
 
 
@@ -605,11 +632,16 @@ def test_a_rival_the_first_look_found_is_not_lost_by_the_second():
     ambiguous, with a shape 3.5 mm off that explains the views nearly as well. The thorough
     look does not refine that shape again (the first look's wide search found it) and
     answered "ok" at the same tip: a wrong "ok". The first look's rival, still close in
-    cost to the final answer, keeps it ambiguous, the rival among its alternatives."""
+    cost to the final answer, keeps it ambiguous, the rival among its alternatives. (So it
+    is without the joints' lines in the model's outline, FitConfig.crease_t; with them
+    both looks find a shape within 5 mm, and one camera alone sees its end.)"""
     capture = make_capture(866008, SyntheticOptions(cameras=2))
-    first = estimate(capture, second_look=False)
+    now = estimate(capture)
+    assert now.verdict is not Verdict.OK or _tip_mm(capture, now) < 5.0
+    plain = dataclasses.replace(DEFAULT_CONFIG, crease_t=())
+    first = estimate(capture, second_look=False, config=plain)
     assert first.verdict is Verdict.AMBIGUOUS and _tip_mm(capture, first) > 10.0
-    est = estimate(capture)
+    est = estimate(capture, config=plain)
     assert est.verdict is Verdict.AMBIGUOUS
     assert min(np.linalg.norm(a.tip_position - capture.truth.tip_position) for a in est.alternatives) < 0.005
 
