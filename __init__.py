@@ -21,3 +21,12 @@ def cache_dir() -> _Path:
 
 # numba reads NUMBA_CACHE_DIR when it is first imported (by tapecell.estimator._kernels).
 _os.environ.setdefault("NUMBA_CACHE_DIR", str(cache_dir() / "numba"))
+
+# One BLAS thread per process, unless the user's environment says otherwise (read when
+# numpy is first imported, so this holds where tapecell is imported first: the command
+# line, the benchmarks). The fit's matrices are small (a few hundred rows): a product
+# split over threads only waits for them, and far longer while another process holds a
+# core (a campaign's workers, the simulator). Measured: the strip stage's Jacobian product
+# with 3 cameras made fits 1.5-2x slower, and their times erratic, beside one busy process.
+for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    _os.environ.setdefault(_name, "1")

@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+# tapecell first: it sets one BLAS thread per process before numpy loads (tapecell/__init__.py).
+import tapecell  # noqa: E402, F401
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))

@@ -28,12 +28,13 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+# tapecell first: it sets one BLAS thread per process before numpy loads (tapecell/__init__.py).
+import tapecell  # noqa: E402, F401
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from tapecell.estimator import View, estimate  # noqa: E402
 from tapecell.estimator.bench import VerdictRow, verdict_row, verdict_summary  # noqa: E402
-from tapecell.estimator.geometry import rot_x  # noqa: E402
 from tapecell.estimator.synthetic import SyntheticOptions, make_capture  # noqa: E402
 
 SYNTHETIC = {

@@ -19,6 +19,8 @@ import argparse
 import sys
 from pathlib import Path
 
+# tapecell first: it sets one BLAS thread per process before numpy loads (tapecell/__init__.py).
+import tapecell  # noqa: E402, F401
 import numpy as np
 from scipy.optimize import least_squares
 
