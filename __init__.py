@@ -22,11 +22,18 @@ def cache_dir() -> _Path:
 # numba reads NUMBA_CACHE_DIR when it is first imported (by tapecell.estimator._kernels).
 _os.environ.setdefault("NUMBA_CACHE_DIR", str(cache_dir() / "numba"))
 
-# One BLAS thread per process, unless the user's environment says otherwise (read when
-# numpy is first imported, so this holds where tapecell is imported first: the command
-# line, the benchmarks). The fit's matrices are small (a few hundred rows): a product
-# split over threads only waits for them, and far longer while another process holds a
-# core (a campaign's workers, the simulator). Measured: the strip stage's Jacobian product
-# with 3 cameras made fits 1.5-2x slower, and their times erratic, beside one busy process.
-for _name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    _os.environ.setdefault(_name, "1")
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def one_blas_thread() -> None:
+    """Ask for one BLAS thread in this process and its children, unless the environment
+    already says how many. It takes effect only before numpy is first imported: the
+    command line (``tapecell.cli``) and the benchmarks in ``scripts/`` call it first thing;
+    a program that imports the estimator itself decides for itself. The fit's matrices are
+    small (a few hundred rows): a product split over threads only waits for them, and far
+    longer while another process holds a core (a campaign's workers, the simulator).
+    Measured: with the joints' lines in the strip's outline its Jacobian product crossed
+    OpenBLAS's threading size, and fits beside one busy process took 1.5-2x as long, their
+    times erratic (the answers are the same with any thread count)."""
+    for name in BLAS_THREAD_VARIABLES:
+        _os.environ.setdefault(name, "1")

@@ -271,7 +271,10 @@ def _folds(a, b, s0, bx, by, u, v):
     """Whether an outline segment counts: always for an edge (``a`` < 0); for a joint's
     line across the tape (from corner ``s0`` along (bx, by) in the image [px]), only where
     the tape folds there in the image: the points ``a`` and ``b`` either side of it (pixels
-    ``u``, ``v``) lie on the same side of its line."""
+    ``u``, ``v``) lie on the same side of its line. A switch, not a weight: the local
+    stage's Jacobian does not see it flip, and where a neighbour lies on the line itself the
+    kernel and the NumPy reference may decide it differently (measure zero). Callers in
+    other files cache their compiled code: after changing this, clear numba's cache."""
     if a < 0:
         return True
     ca = bx * (v[a] - v[s0]) - by * (u[a] - u[s0])

@@ -121,7 +121,8 @@ def best_totals(pts, n_edge, cams, sdf, flag, offsets, sizes, origins, has_ignor
 @njit(cache=True, fastmath=False)
 def outline_cost(corners, segments, cam, obs, delta_out):
     """Coverage score of complete beam chains in one view: (C, M, 3) corners, outline
-    segments (S, 4) as corner indices (see ``Chain.segments``), observed outline points (P, 2) -> (C,) summed Huber
+    segments (S, 4) as corner indices (s0, s1, a, b: counted only where ``a`` and ``b`` lie
+    on one side of the segment's line, always for a < 0; see ``Chain.segments``), observed outline points (P, 2) -> (C,) summed Huber
     losses of each point's distance to the nearest segment."""
     C, M = corners.shape[0], corners.shape[1]
     S = segments.shape[0]

@@ -1,5 +1,6 @@
-"""The plate chain: its sample points (edges, tip edge, centre line) and corners for a
-batch of joint-angle sets, with their exact Jacobian through the chain's kinematics."""
+"""The plate chain: its sample points (edges, tip edge, centre line, joints' lines) and
+corners for a batch of joint-angle sets, with their exact Jacobian through the chain's
+kinematics."""
 from __future__ import annotations
 
 import functools
@@ -13,7 +14,7 @@ from .tape import TapeSpec
 
 @functools.lru_cache(maxsize=16)
 def _chain_layout(n: int, tip_weight: float, edge_t: tuple, centre_t: tuple, tip_t: tuple, crease_t: tuple = ()):
-    """The sample-point layout of an n-plate chain (see :class:`_Chain`), built once per n:
+    """The sample-point layout of an n-plate chain (see :class:`Chain`), built once per setting:
     (M, edge, weight, segments, moves, fold_of), shared: not to be written. ``crease_t``:
     sample points along each joint's line across the tape (FitConfig.crease_t; empty: the
     joints' lines are no part of the outline)."""
@@ -55,7 +56,8 @@ def _chain_layout(n: int, tip_weight: float, edge_t: tuple, centre_t: tuple, tip
     # The tip is what the robot grasps: its plate's edges and the tip edge count more.
     tip = M[:, [m + n, 2 * m + n]].sum(axis=1) > 0
     weight = np.where(tip & edge, tip_weight, 1.0)
-    # silhouette outline segments as corner index pairs: left, right, tip and base edges,
+    # silhouette outline segments (K, 4): corner indices (s0, s1) and the two points whose
+    # sides decide whether it counts (-1, -1: always): left, right, tip and base edges,
     # and with ``crease_t`` the joints' lines across the tape (FitConfig.crease_t),
     # each with the centre nodes either side of it (the fold test); (-1, -1) for the edges
     left = [(m + k, m + k + 1, -1, -1) for k in range(n)]

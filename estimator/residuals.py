@@ -1,5 +1,5 @@
-"""Residuals of the local stage: per view, the plate chain's edge and centre-line sample
-points against the observed silhouette's signed distance field (robust: Huber outside,
+"""Residuals of the local stage: per view, the plate chain's edge (and, where the tape folds
+in the image, joint-line) and centre-line sample points against the observed silhouette's signed distance field (robust: Huber outside,
 Cauchy for edge points inside, which may be hidden edges) and the observed outline's
 coverage by the model's outline; a weak prior on the joint angles; the penetration of
 scene boxes. With their exact Jacobian through the chain and the camera projection."""

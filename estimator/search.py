@@ -91,7 +91,12 @@ def beam_search(spec: TapeSpec, fields: list[Field], grid: np.ndarray | None = N
     # Complete chains: add the coverage of the observed outline, keep the best.
     corners = np.concatenate([lefts, rights], axis=1)               # (c, 2(n+1), 3)
     m = n + 1
-    # Outline segments as in Chain.segments: the side, tip and base edges.
+    # Outline segments (corner indices into lefts + rights, and -1, -1: always counted): the
+    # side, tip and base edges. Unlike the local stage's (FitConfig.crease_t), no joints'
+    # lines: the beam scores no point on a joint's line, so a line there could cover the
+    # outline while its plates leave the silhouette (with the lines here and in the local
+    # stage, before points on them were scored, tuning captures got worse shapes); with the
+    # fold test alone here it is not measured.
     seg = np.array([(k, k + 1, -1, -1) for k in range(n)] + [(m + k, m + k + 1, -1, -1) for k in range(n)]
                    + [(n, m + n, -1, -1), (0, m, -1, -1)])
     for f in fields:

@@ -20,8 +20,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-# tapecell first: it sets one BLAS thread per process before numpy loads (tapecell/__init__.py).
-import tapecell  # noqa: E402, F401
+import tapecell  # noqa: E402
+
+tapecell.one_blas_thread()   # before numpy loads
+
 import numpy as np  # noqa: E402
 
 TARGETS = {"focal_pct": 0.2, "principal_px": 1.0, "centre_mm": 1.0, "rotation_deg": 0.05, "rms_px": 0.1}

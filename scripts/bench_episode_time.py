@@ -23,9 +23,11 @@ from collections import defaultdict
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
+import tapecell  # noqa: E402
+
+tapecell.one_blas_thread()   # before numpy loads
+
 import mujoco  # noqa: E402
-# tapecell first: it sets one BLAS thread per process before numpy loads (tapecell/__init__.py).
-import tapecell  # noqa: E402, F401
 import numpy as np  # noqa: E402
 
 from tapecell.sim import arm as sim_arm  # noqa: E402

@@ -18,9 +18,11 @@ import sys
 import time
 from pathlib import Path
 
-# tapecell first: it sets one BLAS thread per process before numpy loads (tapecell/__init__.py).
-import tapecell  # noqa: E402, F401
-import numpy as np
+import tapecell
+
+tapecell.one_blas_thread()   # before numpy loads
+
+import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 

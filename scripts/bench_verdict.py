@@ -28,8 +28,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 os.environ.setdefault("MUJOCO_GL", "egl")
 
-# tapecell first: it sets one BLAS thread per process before numpy loads (tapecell/__init__.py).
-import tapecell  # noqa: E402, F401
+import tapecell  # noqa: E402
+
+tapecell.one_blas_thread()   # before numpy loads
+
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 

@@ -19,10 +19,12 @@ import argparse
 import sys
 from pathlib import Path
 
-# tapecell first: it sets one BLAS thread per process before numpy loads (tapecell/__init__.py).
-import tapecell  # noqa: E402, F401
-import numpy as np
-from scipy.optimize import least_squares
+import tapecell
+
+tapecell.one_blas_thread()   # before numpy loads
+
+import numpy as np  # noqa: E402
+from scipy.optimize import least_squares  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))

@@ -342,7 +342,8 @@ def test_a_far_grasp_on_a_needle_measured_end_is_planned_about_the_tape_the_need
     the jaw closed on air. The needle touches that grasp point first, and the grasp is planned
     again about the tape it found there: the jaw takes the tape. (So the estimator answers
     without the joints' lines in the model's outline, FitConfig.crease_t; with them its
-    estimate is close enough for the needle to confirm it at once.)"""
+    estimate is close enough for the needle to confirm it at once. The needle's refits keep
+    the default, as in the episode this was found in.)"""
     import dataclasses
     import functools
 

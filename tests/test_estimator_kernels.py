@@ -69,6 +69,31 @@ def test_residuals_and_jacobian_match_reference(prepared):
         assert _relative(r, ref_r) < 1e-9 and _relative(J, ref_J) < 1e-9
         assert np.allclose(cost, ref_cost, rtol=1e-12, atol=0)
         assert np.array_equal(r0, r) and np.array_equal(cost0, cost)
+        # Both states of the joints' lines occur, and a line that does not fold has zero rows.
+        rows = _crease_rows(chain, fields, params, r, J)
+        assert rows["active"] and rows["inactive"] and rows["inactive_zero"]
+
+
+def _crease_rows(chain, fields, params, r, J) -> dict:
+    """Which joints' lines fold in the views' images for ``params`` (B, 3n), and whether the
+    residual and Jacobian rows of the sample points on those that do not are all zero."""
+    from tapecell.estimator.reference import folds
+
+    out = {"active": False, "inactive": False, "inactive_zero": True}
+    corners = np.array([chain.corners(p)[0] for p in params])                  # (B, 3m, 3)
+    on_crease = chain.fold_of >= 0
+    row = 0
+    for f in fields:
+        uv = np.array([f.camera.project(c) for c in corners])                  # (B, 3m, 2)
+        active = folds(chain.segments, uv[..., 0], uv[..., 1])                 # (B, K)
+        creases = chain.segments[:, 2] >= 0
+        out["active"] |= bool(active[:, creases].any())
+        out["inactive"] |= bool((~active[:, creases]).any())
+        samples = slice(row + len(f.outline), row + len(f.outline) + chain.samples)
+        off = on_crease[None, :] & ~np.take(active, np.maximum(chain.fold_of, 0), axis=1)
+        out["inactive_zero"] &= bool(np.all(r[:, samples][off] == 0) and np.all(J[:, samples][off] == 0))
+        row = samples.stop
+    return out
 
 
 def test_beam_scores_match_reference(prepared):

@@ -40,7 +40,7 @@ def test_a_shape_bent_within_the_tapes_plane_is_not_ok(seed):
     (verdict.EDGEWISE_MAX_DEG)."""
     capture = make_capture(seed, SyntheticOptions(part=True, cameras=2))
     est = estimate(capture)
-    assert est.verdict is not Verdict.OK or _tip_mm(capture, est) < 5.0, f"ok {_tip_mm(capture, est):.1f} mm off"
+    assert est.verdict is not Verdict.OK, f"ok {_tip_mm(capture, est):.1f} mm off"
     # The rule itself, on the shape the fit found before the joints' lines were outline
     # (FitConfig.crease_t; now it finds another shape, refused as well).
     est = estimate(capture, config=dataclasses.replace(DEFAULT_CONFIG, crease_t=()))
@@ -93,6 +93,7 @@ def test_a_view_the_strip_explains_is_explained():
     assert _tip_mm(capture, est) < 1.5
     # The plate chain whose model outline holds the joints' lines (FitConfig.crease_t)
     # explains that stretch itself; the one without them (nor in the strip) is the case here.
+    assert _offsets(capture, forward_kinematics(capture.tape, est.angles).quads()).max() <= POOR_OFFSET_PX
     plain = dataclasses.replace(DEFAULT_CONFIG, crease_t=(), strip_crease_t=())
     est = estimate(capture, config=plain)
     assert est.verdict is Verdict.OK, est.verdict_reason
@@ -512,7 +513,9 @@ def test_a_hairpin_fold_at_the_end_gets_the_thorough_look():
     its body in a hairpin. The first look misses the hairpin and returns a shape bending
     sideways at the end, 20 mm off, that it calls "ok"; its end turns more than END_FOLD_DEG
     from the plate before the last, so it gets the thorough look, which finds the
-    hairpin: not "ok", the true shape an alternative within 1.5 mm."""
+    hairpin: not "ok", the true shape an alternative within 1.5 mm (0.4 mm before the joints'
+    lines were outline, FitConfig.crease_t; 1.2 mm with them: the alternative's chain
+    differs, the answer and the verdict do not)."""
     from tapecell.estimator import forward_kinematics, load_capture
     from tapecell.estimator.verdict import END_FOLD_DEG
 
