@@ -447,5 +447,11 @@ def test_an_interrupted_campaign_ends_its_workers_at_once():
             processes = list(pool._processes.values())
             raise KeyboardInterrupt
     assert time.perf_counter() - t0 < 30.0
+    # The pool's own manager thread reaps its workers too: right after the block a worker
+    # already ended can still read as alive for a moment (seen in 1 of 5 runs), so allow
+    # that moment; a worker left to finish its 60 s episode stays alive through it.
+    deadline = time.perf_counter() + 3.0
+    while any(p.is_alive() for p in processes) and time.perf_counter() < deadline:
+        time.sleep(0.05)
     assert processes and not any(p.is_alive() for p in processes)
     assert futures[2].cancelled() or futures[2].done()
