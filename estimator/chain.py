@@ -62,11 +62,13 @@ def _chain_layout(n: int, tip_weight: float, edge_t: tuple, centre_t: tuple, tip
     # each with the centre nodes either side of it (the fold test); (-1, -1) for the edges
     left = [(m + k, m + k + 1, -1, -1) for k in range(n)]
     right = [(2 * m + k, 2 * m + k + 1, -1, -1) for k in range(n)]
+    edges = left + right + [(m + n, 2 * m + n, -1, -1), (m, 2 * m, -1, -1)]
     across = [(m + k, 2 * m + k, k - 1, k + 1) for k in range(1, n)] if crease_t else []
-    segments = np.array(left + right + [(m + n, 2 * m + n, -1, -1), (m, 2 * m, -1, -1)] + across)
-    # each sample point's joint line (its index in segments), -1 for the others
+    segments = np.array(edges + across)
+    # each sample point's joint line (its index in segments: joint k's is across[k - 1]), -1
+    # for the others
     fold_of = np.full(len(M), -1, np.int64)
-    fold_of[len(M) - len(creases):] = [2 * n + 2 + k - 1 for k, _ in creases]
+    fold_of[len(M) - len(creases):] = [len(edges) + k - 1 for k, _ in creases]
     # corner c belongs to the frame of node c % m: it moves with joints 1..c % m
     node_of = np.tile(np.arange(m), 3)
     moves = (node_of[:, None] >= np.arange(1, m)[None, :]).astype(float)  # (3m, n)
@@ -78,17 +80,19 @@ class Chain:
     batch of B angle sets at once."""
 
     def __init__(self, spec: TapeSpec, edge_t: tuple | None = None, centre_t: tuple | None = None,
-                 cfg: FitConfig = DEFAULT):
+                 cfg: FitConfig = DEFAULT, crease_t: tuple | None = None):
         """edge_t, centre_t: where on each plate (fractions of its length) the edge and
-        centre-line sample points lie (default: the config's)."""
+        centre-line sample points lie; crease_t: where along each joint's line (fractions of
+        the width); each by default the config's."""
         self.spec = spec
         self.n = spec.n
         self.cfg = cfg
         edge_t = cfg.edge_t if edge_t is None else edge_t
         centre_t = cfg.centre_t if centre_t is None else centre_t
+        crease_t = cfg.crease_t if crease_t is None else crease_t
         self.M, self.edge, self.weight, self.segments, self.moves, self.fold_of = _chain_layout(
             spec.n, float(cfg.tip_weight), tuple(float(t) for t in edge_t), tuple(float(t) for t in centre_t),
-            tuple(float(t) for t in cfg.tip_t), tuple(float(t) for t in cfg.crease_t))
+            tuple(float(t) for t in cfg.tip_t), tuple(float(t) for t in crease_t))
         self.samples = len(self.M)
 
     def corners(self, angles: np.ndarray):

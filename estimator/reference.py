@@ -108,11 +108,12 @@ def folds(segments: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     return (a < 0)[None, :] | (ca * cb > 0)
 
 
-def coverage(chain, f, u, v, Juv, cfg: FitConfig = DEFAULT):
+def coverage(chain, f, u, v, Juv, active: np.ndarray, cfg: FitConfig = DEFAULT):
     """Observed outline points' distance to the model's outline: every part of the observed
     silhouette must be explained (the reverse of the edge term). u, v: (B, 3m) corner
-    pixels; Juv: their (B, 3m, 2, N) Jacobian or None. Returns (robust cost (B,),
-    weighted residuals (B, P), Jacobian (B, P, N) or None)."""
+    pixels; Juv: their (B, 3m, 2, N) Jacobian or None; active: (B, K) which of the chain's
+    segments count (:func:`folds`). Returns (robust cost (B,), weighted residuals (B, P),
+    Jacobian (B, P, N) or None)."""
     obs = f.outline
     B = u.shape[0]
     if len(obs) == 0:
@@ -133,7 +134,7 @@ def coverage(chain, f, u, v, Juv, cfg: FitConfig = DEFAULT):
     ry -= t * by3
     d2 = rx * rx
     d2 += ry * ry
-    d2 = np.where(folds(chain.segments, u, v)[:, None, :], d2, np.inf)
+    d2 = np.where(active[:, None, :], d2, np.inf)
     k = np.argmin(d2, axis=2)[..., None]                                # (B, P, 1)
     d = np.sqrt(np.take_along_axis(d2, k, 2)[..., 0]) + 1e-9            # (B, P)
     rho, w = huber(d, cfg)
@@ -249,7 +250,8 @@ def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, cfg: FitConfig
     for f in fields:
         u, v, x, y, z = project(f.camera, pts)
         Juv = pixel_jacobian(f.camera, x, y, z, J) if jacobian else None
-        c_cost, c_r, c_j = coverage(chain, f, u[:, ns:], v[:, ns:], None if Juv is None else Juv[:, ns:], cfg)
+        active = folds(chain.segments, u[:, ns:], v[:, ns:])
+        c_cost, c_r, c_j = coverage(chain, f, u[:, ns:], v[:, ns:], None if Juv is None else Juv[:, ns:], active, cfg)
         vw = np.sqrt(f.weight)
         cost += f.weight * c_cost
         rs.append(vw * c_r)
@@ -263,7 +265,7 @@ def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, cfg: FitConfig
         rho, w = robust(r, chain.edge & (sdf < 0), cfg)
         # A joint's line is outline only where the tape folds there in the image.
         fold_of = chain.fold_of
-        off = (fold_of >= 0)[None, :] & ~np.take(folds(chain.segments, u[:, ns:], v[:, ns:]), np.maximum(fold_of, 0), axis=1)
+        off = (fold_of >= 0)[None, :] & ~np.take(active, np.maximum(fold_of, 0), axis=1)
         ignored = off if ignored is None else ignored | off
         if ignored is not None:
             rho = np.where(ignored, 0.0, rho)

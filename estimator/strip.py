@@ -7,8 +7,6 @@ to the strip in 3-D at the model's nodes, tip first, its last plate pulled towar
 strip's tip frame."""
 from __future__ import annotations
 
-import dataclasses
-
 import functools
 
 import numpy as np
@@ -33,8 +31,7 @@ class Strip:
         k = cfg.strip_plates
         self.fine = TapeSpec(np.repeat(spec.segment_lengths / k, k), spec.width, spec.base_position,
                              spec.base_rotation)
-        self.chain = Chain(self.fine, cfg.strip_edge_t, cfg.strip_centre_t,
-                           dataclasses.replace(cfg, crease_t=cfg.strip_crease_t))
+        self.chain = Chain(self.fine, cfg.strip_edge_t, cfg.strip_centre_t, cfg, cfg.strip_crease_t)
         self.T, self.prior = _strip_layout(spec.n, k, float(cfg.strip_in_plane_px))
 
     def angles(self, x: np.ndarray) -> np.ndarray:
