@@ -105,10 +105,12 @@ class FitConfig:
     wide_offset_px: float = 1.5
     """... or when a view's mean boundary distance (its XOR over its outline length) is above
     this [px]: a view the first search's winner does not explain (about 1 in 10 good fits)."""
-    wide_misfit_px: float = 4.5
+    wide_misfit_px: float = 4.0
     """... or when the thickest region where a view and the model disagree is more than
     twice this [px] thick (the largest distance inside it to its edge): a fit that explains
-    a view well on average but misses part of it (the search's winner on a wrong branch)."""
+    a view well on average but misses part of it (the search's winner on a wrong branch).
+    4.5 until 2026-11-26: occluded-913036's wrong "ok" (``wide_curls``) had 4.1 px; on the 964
+    tuning captures 4.0 changed no verdict."""
     wide_beam: int = 8
     """Partial chains kept per node in the wide search."""
     thorough_beam: int = 24
@@ -132,6 +134,19 @@ class FitConfig:
     replaces the winner when it explains the views better: a tip curled back behind the
     tape's body, out of every camera's sight, which the beam's grid does not reach (empty:
     off)."""
+    wide_curls: tuple = (0.2, 0.4, 0.6)
+    """The wide search also refines steady curls: the first stage's winner's first joint, every
+    later joint bent out of plane by each of these [rad], either way, untwisted
+    (:func:`refine.curls`). A tape that curls evenly over its length, its end behind an
+    occluder in one view and seen end-on in the other, leaves a silhouette the beam's
+    plate-by-plate ranking does not follow: fresh occluded-913036's search returned a shape
+    ending at the curl's fold, 18.7 mm off, costing 0.066 against the true shape's 0.023,
+    as "ok". On 964 tuning captures (899000 mix, part 907000-/908000-, sim and shell
+    907000-) the curls changed 7 answers, all for the better (6 refusals "ok" within 1.6 mm,
+    one 24.8 mm off "hidden" 0.8 mm off), none for the worse; one bend (0.4) alone changed 3,
+    one for the worse. Empty: off. (Tried as first-stage starts for every capture in an
+    earlier session: two new wrong "ok" on tuning captures; in the wide search a curl must
+    also beat the winner by ``wide_gain``.)"""
     wide_gain: float = 0.85
     """The wide search's result replaces the first when its eq.-11 cost is below this
     fraction of the first's (only a clear difference counts)."""

@@ -47,7 +47,7 @@ from .chain import Chain
 from .config import DEFAULT, FitConfig
 from .errors import EstimateError
 from .geometry import Camera
-from .refine import hooks, hypotheses, mirrors, refine, variants
+from .refine import curls, hooks, hypotheses, mirrors, refine, variants
 from .result import Alternative, Estimate, Verdict
 from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
@@ -118,10 +118,12 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
                    for c, f in zip(evaluator.view_costs(chain.quads(angles)[0]), fields))
     # (misfit_px reads the disagreement images view_costs just drew for these quads.)
     if thorough or cost > cfg.wide_cost or worst_px > cfg.wide_offset_px or misfit_px(evaluator) > cfg.wide_misfit_px:
-        # A poor fit: only these pay for a wider search (a finer, larger beam and the
-        # other branches next to the winner); it replaces the first result only when its
-        # silhouette cost is clearly lower.
+        # A poor fit: only these pay for a wider search (a finer, larger beam, the other
+        # branches next to the winner and steady curls); it replaces the first result only
+        # when its silhouette cost is clearly lower.
         parts = [variants(angles)] if cfg.wide_variants else []
+        if cfg.wide_curls:
+            parts.append(curls(first.angles, cfg.wide_curls))
         if cfg.wide_beam:
             parts.append(np.array(beam_search(capture.tape, fields, cfg.grid_angles(wide=True),
                                               cfg.thorough_beam if thorough else cfg.wide_beam, cfg)))

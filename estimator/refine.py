@@ -134,6 +134,19 @@ def variants(angles: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
+def curls(angles: np.ndarray, bends) -> np.ndarray:
+    """Steady curls: ``angles``' first joint kept, every later joint bent out of plane by
+    each of ``bends`` [rad] either way, untwisted."""
+    out = []
+    for bend in bends:
+        for sign in (1.0, -1.0):
+            a = np.zeros_like(angles)
+            a[0] = angles[0]
+            a[1:, 1] = sign * bend
+            out.append(a)
+    return np.array(out)
+
+
 def hooks(angles: np.ndarray, bends) -> np.ndarray:
     """Chains like ``angles`` (n, 3) whose end hooks back: the last plate, or the last two
     together, bent out of plane by each of ``bends`` [rad] either way, untwisted. A tip
