@@ -562,7 +562,6 @@ def test_an_end_hooked_back_out_of_sight_is_found_by_the_thorough_look():
     the hooks the thorough look does not find it. (So it is without the joints' lines in
     the model's outline, FitConfig.crease_t; with them the first look finds the hook.)"""
     from tapecell.estimator import load_capture
-    from tapecell.estimator.config import DEFAULT
 
     capture = load_capture(DATA / "sim-chain-c2-857182")
     now = estimate(capture, second_look=False)
