@@ -142,8 +142,8 @@ class FitConfig:
     plate-by-plate ranking does not follow: fresh occluded-913036's search returned a shape
     ending at the curl's fold, 18.7 mm off, costing 0.066 against the true shape's 0.023,
     as "ok". On 964 tuning captures (899000 mix, part 907000-/908000-, sim and shell
-    907000-) the curls changed 7 answers, all for the better (6 refusals "ok" within 1.6 mm,
-    one 24.8 mm off "hidden" 0.8 mm off), none for the worse; one bend (0.4) alone changed 3,
+    907000-) the curls changed 7 answers, all for the better (6 refusals now "ok" within 1.6
+    mm, and a poor_fit 24.8 mm off now "hidden" 0.8 mm off), none for the worse; one bend (0.4) alone changed 3,
     one for the worse. Empty: off. (Tried as first-stage starts for every capture in an
     earlier session: two new wrong "ok" on tuning captures; in the wide search a curl must
     also beat the winner by ``wide_gain``.)"""

@@ -19,9 +19,11 @@ analytic Jacobian:
    and the camera projection.
 4. The refined candidates are ranked by the paper's own silhouette cost (eq. 11); the
    best one is returned with its per-view costs on the full observed masks.
-5. Only when that cost is high (a poor fit) a wide stage runs: a finer, larger beam plus
-   the other branches next to the winner (mirrored bends, flipped or quarter-turned
-   twists); its result replaces the first only when its eq.-11 cost is clearly lower.
+5. Only for a poor fit (a high cost, a view explained badly on average, or a thick region
+   of a view left unexplained: ``FitConfig.wide_*``) a wide stage runs: a finer, larger
+   beam plus the other branches next to the winner (mirrored bends, flipped or
+   quarter-turned twists) and steady curls (:func:`refine.curls`); its result replaces the
+   first only when its eq.-11 cost is clearly lower.
    The thorough look of a "hidden" estimate also refines the winner with its end hooked
    back out of sight behind the body (:func:`refine.hooks`), kept when it costs less.
 6. Strip stage: a 30 mm plate cannot follow a tape that curls within its length, so its

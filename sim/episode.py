@@ -1,8 +1,8 @@
 """One simulated grasp episode, end to end, checked physically.
 
 randomise the tape -> park the arm out of view -> render, segment, estimate -> plan ->
-execute with the simulated UR5e -> check that both pads closed on the tape and that the
-tape's tip followed the gripper through the lift. The result is a `tape-episode/1` dict.
+execute with the simulated UR5e -> check that both pads closed on the tape, across it,
+and that the tape held between them followed the gripper through the lift. The result is a `tape-episode/1` dict.
 """
 from __future__ import annotations
 
@@ -45,6 +45,7 @@ class EpisodeOutcome:
     lift_m: float = 0.0
     tip_follow_error_m: float | None = None
     held_follow_error_m: float | None = None
+    held_offset_m: float | None = None
 
 
 def with_cameras(capture: Capture, cameras_file: Path) -> Capture:
@@ -223,6 +224,8 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
             doc["tip_follow_error_mm"] = round(outcome.tip_follow_error_m * 1e3, 2)
         if outcome.held_follow_error_m is not None:
             doc["held_follow_error_mm"] = round(outcome.held_follow_error_m * 1e3, 2)
+        if outcome.held_offset_m is not None:
+            doc["held_offset_mm"] = round(outcome.held_offset_m * 1e3, 2)
         if outcome.detail:
             doc["detail"] = outcome.detail
         return doc
@@ -852,6 +855,29 @@ def point_at(s: np.ndarray, points: np.ndarray, at: float) -> np.ndarray:
     return np.array([np.interp(at, s, points[:, i]) for i in range(3)])
 
 
+@dataclass(frozen=True)
+class HeldPoint:
+    """The tape where the jaw closed on it: the true centre line's point nearest the jaw's
+    centre (the TCP, midway between the pads) then, by its arc length ``s`` [m] (so a tape
+    sliding along itself through the pads lags), its position ``position`` (3,) [m] then,
+    and the TCP's distance ``offset_m`` [m] from it."""
+
+    s: float
+    position: np.ndarray
+    offset_m: float
+
+    @classmethod
+    def at(cls, truth, tcp: np.ndarray) -> "HeldPoint":
+        s = nearest_arc_length(truth.s, truth.points, tcp)
+        position = point_at(truth.s, truth.points, s)
+        return cls(s, position, float(np.linalg.norm(tcp - position)))
+
+    def lag(self, truth, gripper_move: np.ndarray) -> float:
+        """How far [m] the same point of the tape (``truth``: the true centre line now) ended
+        from where moving with the gripper by ``gripper_move`` (3,) would have put it."""
+        return float(np.linalg.norm(point_at(truth.s, truth.points, self.s) - self.position - gripper_move))
+
+
 def _execute_and_check(cell, sim_arm, plan, limits, motion) -> EpisodeOutcome:
     """Run the plan on the simulated arm and judge the grasp from the physics (``motion``
     samples each step's start)."""
@@ -869,9 +895,7 @@ def _execute_and_check(cell, sim_arm, plan, limits, motion) -> EpisodeOutcome:
             state["contacts_closed"] = cell.gripper_pad_contacts_with_tape()
             state["tip_before"] = cell.tape_tip_position()
             state["tcp_before"] = sim_arm.tcp_pose("gripper")[:3, 3].copy()
-            truth = cell.truth()
-            state["held_s"] = nearest_arc_length(truth.s, truth.points, state["tcp_before"])
-            state["held_before"] = point_at(truth.s, truth.points, state["held_s"])
+            state["held"] = HeldPoint.at(cell.truth(), state["tcp_before"])
 
     driver = SimArmAdapter(sim_arm)
     try:
@@ -886,13 +910,21 @@ def _execute_and_check(cell, sim_arm, plan, limits, motion) -> EpisodeOutcome:
         out.failure = "missed"
         out.detail = f"pad contacts with the tape on closing: {closed}"
         return out
+    held: HeldPoint = state["held"]
+    out.held_offset_m = held.offset_m
+    reach = 0.5 * cell.config.tape.width + 0.5 * cell.config.tools.gripper.pad_size[0]
+    if held.offset_m > reach:
+        # Both pads touch tape, but the jaw's centre is off the tape's width by more than
+        # half a pad: the tape lies on a pad's edge or outer face, not between the pads.
+        out.failure = "missed"
+        out.detail = (f"the jaw closed {held.offset_m * 1e3:.1f} mm from the tape's centre line (more than "
+                      f"{reach * 1e3:.1f} mm: half the tape's width and half a pad)")
+        return out
     gripper_move = sim_arm.tcp_pose("gripper")[:3, 3] - state["tcp_before"]
     tip_move = cell.tape_tip_position() - state["tip_before"]
-    truth = cell.truth()
-    held_move = point_at(truth.s, truth.points, state["held_s"]) - state["held_before"]
     out.lift_m = float(np.linalg.norm(gripper_move))
     out.tip_follow_error_m = float(np.linalg.norm(tip_move - gripper_move))
-    out.held_follow_error_m = float(np.linalg.norm(held_move - gripper_move))
+    out.held_follow_error_m = held.lag(cell.truth(), gripper_move)
     if not (out.pad_contacts.get("left", 0) and out.pad_contacts.get("right", 0)) \
             or out.held_follow_error_m > FOLLOW_TOLERANCE_M:
         out.failure = "slipped"

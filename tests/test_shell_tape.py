@@ -90,7 +90,7 @@ def test_the_whole_cell_with_the_shell_tape_grasps_it(tmp_path):
     assert doc["randomize"] == {"tape_model": "shell"}
     assert doc["outcome"] == "grasped", doc
     assert doc["pad_contacts"]["left"] > 0 and doc["pad_contacts"]["right"] > 0
-    assert doc["tip_error_mm"] < 3.0 and doc["lift_mm"] > 40.0 and doc["tip_follow_error_mm"] < 8.0
+    assert doc["tip_error_mm"] < 3.0 and doc["lift_mm"] > 40.0 and doc["held_follow_error_mm"] < 8.0
     assert (tmp_path / "shell.rrd").stat().st_size > 0
 
     cfg = load_cell_config()

@@ -72,7 +72,7 @@ def test_a_steady_curl_the_beam_misses_is_found_by_the_wide_search():
     alone (hidden)."""
     capture = make_capture(913036, SyntheticOptions(occluder=True, cameras=2))
     est = estimate(capture)
-    assert _tip_mm(capture, est) < 3.0 and est.verdict is not Verdict.OK, (est.verdict, _tip_mm(capture, est))
+    assert _tip_mm(capture, est) < 3.0 and est.verdict is Verdict.HIDDEN, (est.verdict, _tip_mm(capture, est))
     without = estimate(capture, config=dataclasses.replace(DEFAULT_CONFIG, wide_curls=()))
     assert _tip_mm(capture, without) > 10.0 and without.cost > 1.5 * est.cost
 
