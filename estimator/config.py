@@ -135,18 +135,22 @@ class FitConfig:
     tape's body, out of every camera's sight, which the beam's grid does not reach (empty:
     off)."""
     wide_curls: tuple = (0.2, 0.4, 0.6)
-    """The wide search also refines steady curls: the first stage's winner's first joint, every
-    later joint bent out of plane by each of these [rad], either way, untwisted
-    (:func:`refine.curls`). A tape that curls evenly over its length, its end behind an
-    occluder in one view and seen end-on in the other, leaves a silhouette the beam's
-    plate-by-plate ranking does not follow: fresh occluded-913036's search returned a shape
-    ending at the curl's fold, 18.7 mm off, costing 0.066 against the true shape's 0.023,
-    as "ok". On 964 tuning captures (899000 mix, part 907000-/908000-, sim and shell
-    907000-) the curls changed 7 answers, all for the better (6 refusals now "ok" within 1.6
-    mm, and a poor_fit 24.8 mm off now "hidden" 0.8 mm off), none for the worse; one bend (0.4) alone changed 3,
-    one for the worse. Empty: off. (Tried as first-stage starts for every capture in an
-    earlier session: two new wrong "ok" on tuning captures; in the wide search a curl must
-    also beat the winner by ``wide_gain``.)"""
+    """After the wide search, steady curls are refined on their own, untwisted: per bend of
+    these [rad] and either way, the first stage's winner's first joint with every later joint
+    bent by it, and every joint bent by it (:func:`refine.curls`). A tape that curls evenly
+    leaves a silhouette the beam's plate-by-plate ranking may not follow: fresh
+    occluded-913036's search returned a shape ending at the curl's fold, 18.7 mm off,
+    costing 0.066 against the true shape's 0.023, as "ok"; fresh clean-922044's a zig-zag
+    chain with its first joint twisted the wrong way, 4.7 mm off at 0.152 against 0.024.
+    Screened with the wide search's other starts, the curl that leads to the true shape lost
+    its place after a few iterations (922044); refined on their own, each group keeps its
+    best. On 964 tuning captures (899000 mix, part 907000-/908000-, sim and shell 907000-),
+    against no curls: 16 answers changed, 13 refusals now "ok" within 2.3 mm, two poor_fit
+    16-25 mm off now hidden within 1 mm, an "ok" 0.6 mm off now ambiguous; no wrong "ok". Curls
+    with the winner's first joint alone (screened with the rest) changed 7, and missed
+    922044; curls with every joint bent alone, refined apart, made three answers worse.
+    (As first-stage starts for every capture, in an earlier session: two new wrong "ok" on
+    tuning captures; here a curl must beat the answer by ``wide_gain``.) Empty: off."""
     wide_gain: float = 0.85
     """The wide search's result replaces the first when its eq.-11 cost is below this
     fraction of the first's (only a clear difference counts)."""

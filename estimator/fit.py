@@ -120,12 +120,10 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
                    for c, f in zip(evaluator.view_costs(chain.quads(angles)[0]), fields))
     # (misfit_px reads the disagreement images view_costs just drew for these quads.)
     if thorough or cost > cfg.wide_cost or worst_px > cfg.wide_offset_px or misfit_px(evaluator) > cfg.wide_misfit_px:
-        # A poor fit: only these pay for a wider search (a finer, larger beam, the other
-        # branches next to the winner and steady curls); it replaces the first result only
+        # A poor fit: only these pay for a wider search (a finer, larger beam and the other
+        # branches next to the winner, then steady curls); each replaces the answer only
         # when its silhouette cost is clearly lower.
         parts = [variants(angles)] if cfg.wide_variants else []
-        if cfg.wide_curls:
-            parts.append(curls(first.angles, cfg.wide_curls))
         if cfg.wide_beam:
             parts.append(np.array(beam_search(capture.tape, fields, cfg.grid_angles(wide=True),
                                               cfg.thorough_beam if thorough else cfg.wide_beam, cfg)))
@@ -133,6 +131,13 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
         a2, t2, c2 = refine(chain, fields, wide, silhouette_costs, pool, cfg, first.screens)
         if c2 < cfg.wide_gain * cost:
             angles, trace, cost = a2, trace + t2, c2
+        if cfg.wide_curls:
+            # Steady curls, refined on their own: screened with the rest, a curl a few
+            # iterations from its best lost its place to the beam's chains (clean-922044).
+            a4, t4, c4 = refine(chain, fields, curls(first.angles, cfg.wide_curls), silhouette_costs, pool, cfg,
+                                first.screens)
+            if c4 < cfg.wide_gain * cost:
+                angles, trace, cost = a4, trace + t4, c4
         if thorough and cfg.hook_bends:
             # An end hooked back, out of sight behind the body: refined from the first
             # stage's winner (the default beam's, before any wide search); every refined

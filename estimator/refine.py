@@ -135,14 +135,19 @@ def variants(angles: np.ndarray) -> np.ndarray:
 
 
 def curls(angles: np.ndarray, bends) -> np.ndarray:
-    """Steady curls: ``angles``' first joint kept, every later joint bent out of plane by
-    each of ``bends`` [rad] either way, untwisted."""
+    """Steady curls, untwisted: per bend of ``bends`` [rad] and either way, ``angles``' first
+    joint kept and every later joint bent out of plane by it, then every joint bent by it
+    (the first joint too: a start whose first joint is wrong, twisted the other way, leaves
+    the rest of its curl on a wrong branch)."""
     out = []
     for bend in bends:
         for sign in (1.0, -1.0):
             a = np.zeros_like(angles)
             a[0] = angles[0]
             a[1:, 1] = sign * bend
+            out.append(a)
+            a = np.zeros_like(angles)
+            a[:, 1] = sign * bend
             out.append(a)
     return np.array(out)
 

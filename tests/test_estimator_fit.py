@@ -302,14 +302,16 @@ def test_a_start_screens_the_same_alone_in_a_batch_or_from_the_cache():
     assert len(plain[1]) == len(cached[1]) and all(np.array_equal(a, b) for a, b in zip(plain[1], cached[1]))
 
 
-def test_steady_curls_keep_the_first_joint_and_bend_the_rest_evenly():
-    """refine.curls: per bend and sign, the first joint as given, every later joint bent out
-    of plane (θy) by the bend, no twist, no edgewise bend."""
+def test_steady_curls_bend_every_joint_evenly_with_and_without_the_first():
+    """refine.curls: per bend and sign, the given first joint with every later joint bent out
+    of plane (θy) by the bend, then every joint bent by it; no twist, no edgewise bend."""
     from tapecell.estimator.refine import curls
 
     angles = np.arange(15, dtype=float).reshape(5, 3) / 10
     out = curls(angles, (0.2, 0.4))
-    assert out.shape == (4, 5, 3)
-    np.testing.assert_array_equal(out[:, 0], np.repeat(angles[:1], 4, axis=0))
-    np.testing.assert_allclose(out[:, 1:, 1], [[0.2] * 4, [-0.2] * 4, [0.4] * 4, [-0.4] * 4])
-    assert not out[:, 1:, 0].any() and not out[:, 1:, 2].any()
+    assert out.shape == (8, 5, 3)
+    kept, every = out[0::2], out[1::2]
+    np.testing.assert_array_equal(kept[:, 0], np.repeat(angles[:1], 4, axis=0))
+    np.testing.assert_allclose(kept[:, 1:, 1], [[0.2] * 4, [-0.2] * 4, [0.4] * 4, [-0.4] * 4])
+    np.testing.assert_allclose(every[:, :, 1], [[0.2] * 5, [-0.2] * 5, [0.4] * 5, [-0.4] * 5])
+    assert not kept[:, 1:, 0::2].any() and not every[:, :, 0::2].any()
