@@ -116,6 +116,7 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
         return evaluator.costs(chain.quads(angles))
 
     angles, trace, cost, pool = first.angles, first.trace, first.cost, list(first.pool)
+    uncurled = None
     worst_px = max(c * f.target.area / f.outline_px
                    for c, f in zip(evaluator.view_costs(chain.quads(angles)[0]), fields))
     # (misfit_px reads the disagreement images view_costs just drew for these quads.)
@@ -137,6 +138,7 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
             a4, t4, c4 = refine(chain, fields, curls(first.angles, cfg.wide_curls), silhouette_costs, pool, cfg,
                                 first.screens)
             if c4 < cfg.wide_gain * cost:
+                uncurled = (angles, trace, cost)
                 angles, trace, cost = a4, trace + t4, c4
         if thorough and cfg.hook_bends:
             # An end hooked back, out of sight behind the body: refined from the first
@@ -150,6 +152,14 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
     strip = None
     if cfg.strip:
         strip = first.strip(chain, angles, cfg)
+        if uncurled is not None:
+            # A curl replaced the plate fit: the strip from each, the one that explains the
+            # views better stands (part-924052: the curl's plate fit cost less, but its strip
+            # stuck on a worse branch, poor_fit; the other's strip explained the views).
+            other = first.strip(chain, uncurled[0], cfg)
+            w = cfg.strip_frame_weight
+            if silhouette_costs(other(w)[None])[0] < silhouette_costs(strip(w)[None])[0]:
+                strip, (angles, trace, cost) = other, uncurled
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
         # above the guard: the chain without the tip-frame pull, then the plate fit.

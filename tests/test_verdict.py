@@ -89,6 +89,16 @@ def test_a_curl_whose_first_joint_the_beam_twisted_is_found():
     assert _tip_mm(capture, without) > 3.0 and without.cost > 3.0 * est.cost
 
 
+def test_where_a_curl_replaces_the_plate_fit_the_better_strip_stands():
+    """A fresh part capture (924052) whose plate chain explains the views poorly (cost
+    0.57-0.77); the strip stage explains them. A steady curl gave the cheaper plate fit, but
+    the strip from it stuck on a worse branch: poor_fit (5.7 px), the tip 0.8 mm off. The
+    strip from the plate fit the curl replaced explains the views: "ok"."""
+    capture = make_capture(924052, SyntheticOptions(part=True, cameras=2))
+    est = estimate(capture)
+    assert est.verdict is Verdict.OK and _tip_mm(capture, est) < 1.5, (est.verdict_reason, _tip_mm(capture, est))
+
+
 def test_edgewise_bend_of_a_plate_chain():
     """verdict.edgewise_bend: an in-plane bend of 0.5 rad at joint 2 is 28.6 deg edgewise
     there; the same bend out of the plane (flatwise) is not edgewise at all; at the last joint
