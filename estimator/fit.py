@@ -148,6 +148,7 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
                                  first.screens)
             if c3 < cost:
                 angles, trace, cost = a3, first.trace + t3, c3
+                uncurled = None   # the answer is the hook's, not a curl's
     fallback = None
     strip = None
     if cfg.strip:
