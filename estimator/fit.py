@@ -153,20 +153,21 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
     strip = None
     if cfg.strip:
         strip = first.strip(chain, angles, cfg)
+        output = strip(cfg.strip_frame_weight)
         if uncurled is not None:
             # A curl replaced the plate fit: the strip from each, the one that explains the
             # views better stands (part-924052: the curl's plate fit cost less, but its strip
             # stuck on a worse branch, poor_fit; the other's strip explained the views).
             other = first.strip(chain, uncurled[0], cfg)
-            w = cfg.strip_frame_weight
-            if silhouette_costs(other(w)[None])[0] < silhouette_costs(strip(w)[None])[0]:
-                strip, (angles, trace, cost) = other, uncurled
+            theirs = other(cfg.strip_frame_weight)
+            if silhouette_costs(theirs[None])[0] < silhouette_costs(output[None])[0]:
+                strip, output, (angles, trace, cost) = other, theirs, uncurled
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
         # above the guard: the chain without the tip-frame pull, then the plate fit.
         alternatives = [lambda: strip(0.0)] if cfg.strip_frame_weight > 0 else []
         fallback = (cost, alternatives + [lambda: plate])
-        angles = strip(cfg.strip_frame_weight)
+        angles = output
         trace = trace + [angles]
     winner = plate if cfg.strip else angles
     return angles, trace, evaluator.evaluations, fallback, hypotheses(chain, pool, winner), strip

@@ -142,13 +142,11 @@ def curls(angles: np.ndarray, bends) -> np.ndarray:
     out = []
     for bend in bends:
         for sign in (1.0, -1.0):
-            a = np.zeros_like(angles)
-            a[0] = angles[0]
-            a[1:, 1] = sign * bend
-            out.append(a)
-            a = np.zeros_like(angles)
-            a[:, 1] = sign * bend
-            out.append(a)
+            every = np.zeros_like(angles)
+            every[:, 1] = sign * bend
+            kept = every.copy()
+            kept[0] = angles[0]
+            out += [kept, every]
     return np.array(out)
 
 

@@ -23,7 +23,7 @@ from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
 from tapecell.estimator.geometry import rot_x, rot_y
-from tapecell.estimator.metrics import errors
+from tapecell.estimator.metrics import centerline_at, errors
 
 MIN_LIFT_M = 0.020
 """The gripper must rise at least this far with the tape for a success."""
@@ -850,11 +850,6 @@ def nearest_arc_length(s: np.ndarray, points: np.ndarray, p: np.ndarray) -> floa
     return float(s[k] + t[k] * (s[k + 1] - s[k]))
 
 
-def point_at(s: np.ndarray, points: np.ndarray, at: float) -> np.ndarray:
-    """(3,) the polyline ``points`` (M, 3), sampled at arc lengths ``s``, at arc length ``at``."""
-    return np.array([np.interp(at, s, points[:, i]) for i in range(3)])
-
-
 @dataclass(frozen=True)
 class HeldPoint:
     """The tape where the jaw closed on it: the true centre line's point nearest the jaw's
@@ -869,13 +864,13 @@ class HeldPoint:
     @classmethod
     def at(cls, truth, tcp: np.ndarray) -> "HeldPoint":
         s = nearest_arc_length(truth.s, truth.points, tcp)
-        position = point_at(truth.s, truth.points, s)
+        position = centerline_at(truth, [s])[0]
         return cls(s, position, float(np.linalg.norm(tcp - position)))
 
     def lag(self, truth, gripper_move: np.ndarray) -> float:
         """How far [m] the same point of the tape (``truth``: the true centre line now) ended
         from where moving with the gripper by ``gripper_move`` (3,) would have put it."""
-        return float(np.linalg.norm(point_at(truth.s, truth.points, self.s) - self.position - gripper_move))
+        return float(np.linalg.norm(centerline_at(truth, [self.s])[0] - self.position - gripper_move))
 
 
 def _execute_and_check(cell, sim_arm, plan, limits, motion) -> EpisodeOutcome:

@@ -458,19 +458,20 @@ def test_an_interrupted_campaign_ends_its_workers_at_once():
 
 
 def test_the_held_point_is_found_and_followed_along_the_centre_line():
-    """sim.episode.HeldPoint: the success check's point where the pads hold the tape, by arc
+    """sim.episode.HeldPoint (with estimator.metrics.centerline_at): the success check's point where the pads hold the tape, by arc
     length along the true centre line, found on closing and read again after the lift. A
     tape lifted with the jaw does not lag; one sliding 10 mm along itself through the pads
     lags 10 mm, though the centre line's point nearest the jaw is as near as before."""
     from tapecell.estimator.capture import Truth
-    from tapecell.sim.episode import HeldPoint, nearest_arc_length, point_at
+    from tapecell.estimator.metrics import centerline_at
+    from tapecell.sim.episode import HeldPoint, nearest_arc_length
 
     s = np.array([0.0, 0.01, 0.02, 0.03])
     points = np.array([[0, 0, 0], [0.01, 0, 0], [0.01, 0.01, 0], [0.01, 0.02, 0]], float)
     assert nearest_arc_length(s, points, np.array([0.004, 0.003, 0.002])) == pytest.approx(0.004)
     assert nearest_arc_length(s, points, np.array([0.013, 0.015, 0.0])) == pytest.approx(0.025)
     assert nearest_arc_length(s, points, np.array([-1.0, 0.0, 0.0])) == pytest.approx(0.0)
-    np.testing.assert_allclose(point_at(s, points, 0.025), [0.01, 0.015, 0.0])
+    np.testing.assert_allclose(centerline_at(Truth(s, points, np.eye(3)), [0.025])[0], [0.01, 0.015, 0.0])
     # A repeated sample (a zero-length segment) is harmless.
     s2, p2 = np.insert(s, 2, 0.02), np.insert(points, 2, points[2], axis=0)
     assert nearest_arc_length(s2, p2, np.array([0.013, 0.01, 0.0])) == pytest.approx(0.02)
