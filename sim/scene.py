@@ -5,7 +5,9 @@ actuators are added here. Geom groups (what the renderer shows or hides):
 0 world, 1 tape, 2 arm, 3 cross plate, 4 needle, 5 gripper.
 
 Contacts: only the gripper pads touch the tape (pads contype 2, tape conaffinity 2);
-everything else is contact-free, so the curled tape never fights the part or itself.
+everything else is contact-free, so the curled tape never fights the part or itself. The
+part and the table have contype 4 (:data:`BOX_CONTYPE`), which no geom here matches: only the
+shell tape (:mod:`sim.shell`), which droops far enough to reach them, rests on them.
 The tape is a chain of thin plates, each joined to the previous one by three hinges
 (z edge bend, y flat bend, x twist: ``F_i = F_{i-1} Rz Ry Rx`` as in the estimator's
 model) with their own stiffness, so it bends easily flatwise, hardly edgewise, and
@@ -26,6 +28,7 @@ GROUP_WORLD, GROUP_TAPE, GROUP_ARM, GROUP_PLATE, GROUP_NEEDLE, GROUP_GRIPPER = r
 TOOL_GROUPS = {"plate": GROUP_PLATE, "needle": GROUP_NEEDLE, "gripper": GROUP_GRIPPER}
 TAPE_HINGES = ("edge", "flat", "twist")   # joint order in each plate body: Rz, Ry, Rx
 PAD_CONTYPE = 2
+BOX_CONTYPE = 4
 # Contacts act this far out from the sub-millimetre plates, so the pads cannot squeeze
 # through a plate within a timestep.
 TAPE_MARGIN = 0.0005
@@ -119,7 +122,7 @@ def _add_world(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
     rgba = {"table": cfg.table.rgba, "part": cfg.part.rgba}
     for box in scene_boxes(cfg):   # the same boxes the captures carry as their scene
         wb.add_geom(name=box.name, type=mujoco.mjtGeom.mjGEOM_BOX, size=box.half, pos=box.center,
-                    rgba=list(rgba[box.name]), contype=0, conaffinity=0, group=GROUP_WORLD)
+                    rgba=list(rgba[box.name]), contype=BOX_CONTYPE, conaffinity=0, group=GROUP_WORLD)
     wb.add_light(name="key", pos=[1.2, 0.2, 1.5], dir=[-0.6, 0.2, -0.8], diffuse=[0.6, 0.6, 0.6],
                  specular=[0.1, 0.1, 0.1], castshadow=True, type=mujoco.mjtLightType.mjLIGHT_DIRECTIONAL)
     wb.add_light(name="fill", pos=[0.6, 0.5, 1.0], dir=[-0.3, 0.0, -1.0], diffuse=[0.3, 0.3, 0.3],

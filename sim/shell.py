@@ -26,7 +26,7 @@ from tapecell.estimator.capture import Capture, Truth, View
 from tapecell.estimator.tape import TapeSpec, forward_kinematics
 
 from .cell import SimCell, SimError, camera_from_mujoco
-from .scene import CONTACT_SOLREF, GROUP_TAPE, PAD_CONTYPE, TAPE_MARGIN, _add_cameras, _add_world, build_spec
+from .scene import BOX_CONTYPE, CONTACT_SOLREF, GROUP_TAPE, PAD_CONTYPE, TAPE_MARGIN, _add_cameras, _add_world, build_spec
 from .tape_shape import rest_shape
 
 STATIONS = 31
@@ -70,11 +70,14 @@ def _rest_vertices(cfg: CellConfig, seed: int) -> tuple[np.ndarray, str]:
     return verts.reshape(-1, 3), rest.case
 
 
-def _flex_xml(verts: np.ndarray, cfg: CellConfig, young: float, conaffinity: int = 0,
+def _flex_xml(verts: np.ndarray, cfg: CellConfig, young: float, conaffinity: int = BOX_CONTYPE,
               radius: float | None = None) -> str:
-    """The sheet as a ``flexcomp`` element (pinned base rows, no self-collision); with
-    ``conaffinity`` the geoms of that contype (the gripper's pads) touch it; ``radius``: its
-    half thickness as collided and rendered (default half the tape's thickness)."""
+    """The sheet as a ``flexcomp`` element (pinned base rows, no self-collision); the geoms
+    of the contypes in ``conaffinity`` touch it: the part and the table (a sheet passing
+    through them would be seen to end at their edge, where a real tape rests on the part and
+    hangs down its side: fresh 929000 drooped 2.4 mm into the part, its last 17 mm hidden in
+    it), and in the grasp cell the gripper's pads; ``radius``: its half thickness as
+    collided and rendered (default half the tape's thickness)."""
     radius = cfg.tape.thickness / 2 if radius is None else radius
     el = []
     for i in range(STATIONS - 1):
@@ -227,7 +230,8 @@ class ShellSimCell(SimCell):
         self.spec = None
         xml = build_spec(cfg, self.n_cameras, tape=False).to_xml()
         xml = xml.replace('integrator="implicitfast"', 'integrator="discrete"')
-        flex = _flex_xml(verts, cfg, self.young, conaffinity=PAD_CONTYPE, radius=GRASP_RADIUS_M).replace(
+        flex = _flex_xml(verts, cfg, self.young, conaffinity=PAD_CONTYPE | BOX_CONTYPE,
+                          radius=GRASP_RADIUS_M).replace(
             '<flexcomp name="shell"', f'<flexcomp name="shell" group="{GROUP_TAPE}"', 1)
         xml = xml.replace("</worldbody>", flex + "</worldbody>", 1)
         try:
