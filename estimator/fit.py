@@ -50,7 +50,7 @@ from .config import DEFAULT, FitConfig
 from .errors import EstimateError
 from .geometry import Camera
 from .refine import curls, hooks, hypotheses, mirrors, refine, variants
-from .result import Alternative, Estimate, Verdict
+from .result import Alternative, CostHistory, Estimate, Verdict
 from .search import beam_search
 from .silhouette import CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
@@ -457,9 +457,9 @@ def _answer(capture: Capture, method: str, config: FitConfig, start: float, angl
         found, None if strip is None else strip.fine)
     elapsed = time.perf_counter() - start
     if method == "default":
-        # The cost per iteration on the eq.-11 scale, for recordings and plots.
-        full = CostEvaluator([make_target(v) for v in capture.views], capture.scene)
-        history = [full.cost(forward_kinematics(capture.tape, a).quads()) for a in trace]
+        # The cost per iteration on the eq.-11 scale, for recordings and plots: computed when
+        # read (:class:`CostHistory`), or now for a callback.
+        history = CostHistory(lambda: _trace_costs(capture, trace))
         if callback is not None:
             for k, (a, c) in enumerate(zip(trace, history), 1):
                 callback(k, c, a)
@@ -467,6 +467,17 @@ def _answer(capture: Capture, method: str, config: FitConfig, start: float, angl
                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
                    trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)
     return est, shape, by_strip
+
+
+def _trace_costs(capture: Capture, trace: list) -> list[float]:
+    """The eq.-11 cost of each of the angles (n, 3) in ``trace``, rendered only where the
+    mask or one of them is (the same costs as on the whole images, :func:`_cost_roi`)."""
+    if not trace:
+        return []
+    quads = np.array([forward_kinematics(capture.tape, a).quads() for a in trace])
+    evaluator = CostEvaluator([make_target(v, roi=_cost_roi(v, quads.reshape(-1, 4, 3))) for v in capture.views],
+                              capture.scene)
+    return [float(c) for c in evaluator.costs(quads)]
 
 
 def _cheapest_answer(capture: Capture, est: Estimate, first: FirstStage, config: FitConfig) -> Estimate:

@@ -2,8 +2,9 @@
 from __future__ import annotations
 
 import enum
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -20,6 +21,40 @@ class Verdict(str, enum.Enum):
     """Fewer than two cameras see the free end."""
     POOR_FIT = "poor_fit"
     """The silhouettes are not explained (bad calibration or segmentation, the wrong tape)."""
+
+
+class CostHistory(Sequence):
+    """A sequence of costs computed when first read (``compute()`` -> the list): what an
+    estimate's ``history`` costs to render (about 10 ms a look, rendering every iterate) is
+    paid by whoever reads it (recordings, plots), not by every fit's caller. Pickles (and
+    compares) as the list it holds."""
+
+    def __init__(self, compute: Callable[[], list]):
+        self._compute: Callable[[], list] | None = compute
+        self._values: list | None = None
+
+    def _list(self) -> list:
+        if self._values is None:
+            self._values = [float(c) for c in self._compute()]
+            self._compute = None          # drop what it held (the capture, the iterates)
+        return self._values
+
+    def __getitem__(self, k):
+        return self._list()[k]
+
+    def __len__(self) -> int:
+        return len(self._list())
+
+    def __eq__(self, other: object) -> bool:
+        return self._list() == (list(other) if isinstance(other, Sequence) else other)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        return repr(self._list())
+
+    def __reduce__(self):
+        return list, (self._list(),)
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +105,7 @@ class Estimate:
     view_costs: np.ndarray
     time_s: float
     method: str = "default"
-    history: list[float] = field(default_factory=list)
+    history: Sequence[float] = field(default_factory=list)
     evaluations: int = 0
     verdict: Verdict = Verdict.OK
     verdict_reason: str = ""

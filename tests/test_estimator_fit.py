@@ -98,6 +98,29 @@ def test_callback_sees_every_iteration():
     assert est.history[0] >= est.history[-1]
 
 
+def test_the_history_is_computed_when_read_and_equals_the_whole_images_costs():
+    """Estimate.history (a CostHistory) renders the iterates only when read; its costs are
+    those on the whole images, and it pickles as a plain list."""
+    import pickle
+
+    from tapecell.estimator.result import CostHistory
+
+    calls = []
+    lazy = CostHistory(lambda: calls.append(1) or [0.5, 0.25])
+    assert not calls
+    assert lazy == [0.5, 0.25] and len(lazy) == 2 and lazy[-1] == 0.25 and calls == [1]
+    assert list(lazy) == [0.5, 0.25] and calls == [1]               # computed once
+    assert pickle.loads(pickle.dumps(lazy)) == [0.5, 0.25]
+    assert type(pickle.loads(pickle.dumps(CostHistory(lambda: [1.0])))) is list
+
+    c = _chain_capture(16)
+    est = estimate(c)
+    assert isinstance(est.history, CostHistory) and est.history._values is None
+    full = CostEvaluator([make_target(v) for v in c.views], c.scene)
+    assert list(est.history) == [full.cost(forward_kinematics(c.tape, a).quads()) for a in est.trace]
+    assert est.history[-1] == pytest.approx(est.cost)
+
+
 def test_paper_method_runs_and_returns_valid_estimate():
     c = _chain_capture(15)
     seen = []
