@@ -375,11 +375,10 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     return _look(capture, method, callback, thorough, config, second_look)
 
 
-def _look(capture: Capture, method: str, callback: Callable | None, thorough: bool, config: FitConfig,
-          second_look: bool, first: FirstStage | None = None, top: bool = True) -> Estimate:
+def _look(capture: Capture, method: str, callback: Callback | None, thorough: bool, config: FitConfig,
+          second_look: bool, first: FirstStage | None = None) -> Estimate:
     """:func:`estimate` once its arguments are checked; ``first``: the capture's
-    :class:`FirstStage` when the first look made it (its masks were judged sound then);
-    ``top``: this look gives the answer (not the second look of another)."""
+    :class:`FirstStage` when the first look made it (its masks were judged sound then)."""
     from .paper import fit_paper
 
     start = time.perf_counter()
@@ -388,55 +387,13 @@ def _look(capture: Capture, method: str, callback: Callable | None, thorough: bo
         faults = [(k, f) for k, f in faults if f]
         if faults:
             return _garbage(capture, faults, method, start, config)
-    fallback, found, strip, history = None, [], None, None
+    fallback, found, strip = None, [], None
     if method == "default":
         first = FirstStage(capture, Chain(capture.tape, cfg=config), config) if first is None else first
         angles, trace, evaluations, fallback, found, strip = fit_default(capture, thorough=thorough, cfg=config,
                                                                          first=first)
     else:
         angles, history, evaluations = fit_paper(capture, callback)
-        trace = []
-    est, shape, by_strip = _answer(capture, method, config, start, angles, trace, evaluations, fallback, found,
-                                   strip, history, callback)
-    # A second, more thorough look (a larger global search on the widest grid, always)
-    # before answering, for an unsure estimate, for an "ok" fold, over the whole tape or at
-    # its end (its alternatives, the shapes folded the other way, are weighed afresh), and
-    # for an "ok" end that a camera sees end-on (END_ON_DEG: its depth along that line is
-    # less constrained). For a fold its answer stands; for the others when it is "ok"
-    # (judged afresh) or explains the views better (:func:`_second_look`). The time of both
-    # looks counts. What the looks compute alike (:class:`FirstStage`) is done once.
-    tip_rotation, ok = est.tip_rotation, est.actionable
-    folded = ok and (float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
-                     or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG)))
-    seen_end_on = ok and any(end_on(v, est.tip_position, tip_rotation) for v in capture.views)
-    # An "ok" whose views only the strip explains (verdict.explaining_offsets) was a poor fit
-    # of the plate chain: it gets the look a poor fit gets.
-    unsure = est.verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN) or (ok and by_strip)
-    if method == "default" and second_look and not thorough and (folded or seen_end_on or unsure):
-        # An "ok" estimate (a fold, an end seen end-on) gets a smaller thorough beam
-        # (FitConfig.fold_beam).
-        look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok and not by_strip else config
-        if est.verdict is not Verdict.HIDDEN:
-            # Hooked-back ends only where the end is out of sight: a hooked plate fit whose
-            # strip cannot follow it lowered the scale alternatives are weighed on, and
-            # made an ambiguous part capture 9.5 mm off "ok" (fresh 860000).
-            look = dataclasses.replace(look, hook_bends=())
-        second = _look(capture, method, None, True, look, True, first, top=False)
-        est = dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
-    if top and method == "default":
-        est = _cheapest_answer(capture, est, first, config)
-    return est
-
-
-def _answer(capture: Capture, method: str, config: FitConfig, start: float, angles: np.ndarray, trace: list,
-            evaluations: int, fallback, found: list, strip, history: list | None = None,
-            callback: Callback | None = None):
-    """The estimate of a look's fit: the output chain ``angles`` (falling back while it
-    explains the views far worse than the plate fit: ``fallback``, see :func:`fit_default`),
-    its tip frame (the strip's end, else the chain's), its verdict against the hypotheses
-    ``found`` [(cost, angles)]. ``history``: the paper method's costs (the default method's
-    are computed from ``trace``, after the clock stops). Returns (estimate, the output chain's
-    shape, whether the strip's offsets judged it)."""
     shape, view_costs, evaluator = _costed(capture, angles)
     if fallback is not None:
         plate_cost, alternatives = fallback
@@ -468,7 +425,32 @@ def _answer(capture: Capture, method: str, config: FitConfig, start: float, angl
     est = Estimate(shape.nodes, angles, tip_position, tip_rotation, combine(view_costs),
                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
                    trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)
-    return est, shape, by_strip
+    # A second, more thorough look (a larger global search on the widest grid, always)
+    # before answering, for an unsure estimate, for an "ok" fold, over the whole tape or at
+    # its end (its alternatives, the shapes folded the other way, are weighed afresh), and
+    # for an "ok" end that a camera sees end-on (END_ON_DEG: its depth along that line is
+    # less constrained). For a fold its answer stands; for the others when it is "ok"
+    # (judged afresh) or explains the views better (:func:`_second_look`). The time of both
+    # looks counts. What the looks compute alike (:class:`FirstStage`) is done once.
+    ok = verdict is Verdict.OK
+    folded = ok and (float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
+                     or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG)))
+    seen_end_on = ok and any(end_on(v, tip_position, tip_rotation) for v in capture.views)
+    # An "ok" whose views only the strip explains (verdict.explaining_offsets) was a poor fit
+    # of the plate chain: it gets the look a poor fit gets.
+    unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN) or (ok and by_strip)
+    if method == "default" and second_look and not thorough and (folded or seen_end_on or unsure):
+        # An "ok" estimate (a fold, an end seen end-on) gets a smaller thorough beam
+        # (FitConfig.fold_beam).
+        look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok and not by_strip else config
+        if verdict is not Verdict.HIDDEN:
+            # Hooked-back ends only where the end is out of sight: a hooked plate fit whose
+            # strip cannot follow it lowered the scale alternatives are weighed on, and
+            # made an ambiguous part capture 9.5 mm off "ok" (fresh 860000).
+            look = dataclasses.replace(look, hook_bends=())
+        second = _look(capture, method, None, True, look, True, first)
+        return dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
+    return est
 
 
 def _trace_costs(capture: Capture, trace: list) -> list[float]:
@@ -480,38 +462,3 @@ def _trace_costs(capture: Capture, trace: list) -> list[float]:
     evaluator = CostEvaluator([make_target(v, roi=_cost_roi(v, quads.reshape(-1, 4, 3))) for v in capture.views],
                               capture.scene)
     return [float(c) for c in evaluator.costs(quads)]
-
-
-def _cheapest_answer(capture: Capture, est: Estimate, first: FirstStage, config: FitConfig) -> Estimate:
-    """``est`` with its alternatives' costs on its own scale (the eq.-11 cost on the
-    capture's masks as given, as ``est.cost``; the search costs them on the cleaned masks),
-    or, where one of them explains the views better than ``est``, the answer made from the
-    cheapest, judged afresh with ``est`` among its hypotheses: from its strip (its output
-    chain and tip frame), or where that chain explains the views no better than ``est`` or is
-    beaten by another hypothesis, its plate fit itself; kept only where it is cheaper than
-    ``est``. The answer is never beaten by an alternative it reports. (An alternative can be
-    cheaper than the answer: a wider search's result replaces the first's only when clearly
-    cheaper, ``FitConfig.wide_gain``, and the answer's cost is its output chain's, from the
-    strip, not its plate fit's.) Its time counts."""
-    if not est.alternatives:
-        return est
-    start = time.perf_counter()
-    costed = tuple(dataclasses.replace(a, cost=combine(_costed(capture, a.angles)[1])) for a in est.alternatives)
-    costed = tuple(sorted(costed, key=lambda a: a.cost))
-    est = dataclasses.replace(est, alternatives=costed)
-    if costed[0].cost >= est.cost:
-        return dataclasses.replace(est, time_s=est.time_s + time.perf_counter() - start)
-    best = costed[0]
-    hypotheses = [(a.cost, a.angles) for a in costed[1:]] + [(est.cost, est.angles)]
-    answer = None
-    if config.strip:
-        strip = first.strip(Chain(capture.tape, cfg=config), best.angles, config)
-        steps = [lambda: strip(0.0)] if config.strip_frame_weight > 0 else []
-        output = strip(config.strip_frame_weight)
-        answer, _, _ = _answer(capture, "default", config, start, output, [output], est.evaluations,
-                               (best.cost, steps + [lambda: best.angles]), hypotheses, strip)
-    if answer is None or answer.cost >= est.cost or answer.cost > min(c for c, _ in hypotheses):
-        answer, _, _ = _answer(capture, "default", config, start, best.angles, [best.angles], est.evaluations,
-                               None, hypotheses, None)
-    answer = answer if answer.cost < est.cost else est
-    return dataclasses.replace(answer, time_s=est.time_s + time.perf_counter() - start)

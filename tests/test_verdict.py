@@ -99,26 +99,6 @@ def test_where_a_curl_replaces_the_plate_fit_the_better_strip_stands():
     assert est.verdict is Verdict.OK and _tip_mm(capture, est) < 1.5, (est.verdict_reason, _tip_mm(capture, est))
 
 
-def test_no_alternative_explains_the_views_better_than_the_answer(monkeypatch):
-    """A part capture (899022): the wide search found the true shape's plate fit (cost 0.122)
-    but it replaces the first only when clearly cheaper (FitConfig.wide_gain), and the answer
-    (its strip's chain, 0.175) came out 15 mm off, "hidden", with the true shape an alternative
-    cheaper than it. The cheapest alternative is made the answer, judged afresh: within 1 mm
-    (still hidden: one camera sees the end). Alternatives are costed on the answer's scale."""
-    import tapecell.estimator.fit as fit
-    from tapecell.estimator.silhouette import combine
-
-    capture = make_capture(899022, SyntheticOptions(part=True, cameras=2))
-    est = estimate(capture)
-    assert _tip_mm(capture, est) < 1.0 and est.verdict is not Verdict.OK, (est.verdict, _tip_mm(capture, est))
-    assert all(a.cost >= est.cost for a in est.alternatives)
-    for a in est.alternatives:
-        assert a.cost == pytest.approx(combine(fit._costed(capture, a.angles)[1]))
-    monkeypatch.setattr(fit, "_cheapest_answer", lambda capture, est, first, config: est)
-    before = estimate(capture)
-    assert _tip_mm(capture, before) > 10.0 and min(a.cost for a in before.alternatives) < before.cost
-
-
 def test_edgewise_bend_of_a_plate_chain():
     """verdict.edgewise_bend: an in-plane bend of 0.5 rad at joint 2 is 28.6 deg edgewise
     there; the same bend out of the plane (flatwise) is not edgewise at all; at the last joint
@@ -575,12 +555,10 @@ def test_a_hairpin_fold_at_the_end_gets_the_thorough_look():
     its body in a hairpin. The first look misses the hairpin and returns a shape bending
     sideways at the end, 20 mm off, that it calls "ok"; its end turns more than END_FOLD_DEG
     from the plate before the last, so it gets the thorough look, which finds the
-    hairpin: not "ok", the true shape found within 1.5 mm (0.4 mm before the joints'
+    hairpin: not "ok", the true shape an alternative within 1.5 mm (0.4 mm before the joints'
     lines were outline, FitConfig.crease_t; 1.2 mm with them: the alternative's chain
-    differs, the answer and the verdict do not). It explains the views far better (cost
-    0.039 against 0.079), so it is the answer (hidden: one camera sees the end), not an
-    alternative of the shape 20 mm off (fit._cheapest_answer). Since FitConfig.wide_misfit_px
-    is 4.0 (4.5 before), the first look's wide search finds the hairpin itself; the
+    differs, the answer and the verdict do not). Since FitConfig.wide_misfit_px is 4.0 (4.5
+    before), the first look's wide search finds the hairpin itself, as an alternative; the
     mechanism is tested with 4.5, and the default answer must be as safe."""
     from tapecell.estimator import forward_kinematics, load_capture
     from tapecell.estimator.verdict import END_FOLD_DEG
@@ -594,8 +572,7 @@ def test_a_hairpin_fold_at_the_end_gets_the_thorough_look():
     for config in (before, DEFAULT_CONFIG):
         est = estimate(capture, config=config)
         assert est.verdict is not Verdict.OK
-        assert _tip_mm(capture, est) < 1.5
-        assert all(a.cost >= est.cost for a in est.alternatives)
+        assert min(np.linalg.norm(a.tip_position - capture.truth.tip_position) for a in est.alternatives) < 0.0015
 
 
 def test_an_end_hooked_back_out_of_sight_is_found_by_the_thorough_look():
@@ -717,7 +694,6 @@ def test_a_rival_the_first_look_found_is_not_lost_by_the_second():
     assert min(np.linalg.norm(a.tip_position - capture.truth.tip_position) for a in est.alternatives) < 0.005
 
 
-
 def test_tape_near_the_tip_that_the_strip_covers_is_explained(monkeypatch):
     """A part capture (908069, 3 cameras) whose end curls within the last plate: the plate
     chain leaves a stretch of observed tape near the tip out in two views, which therefore did
@@ -729,6 +705,6 @@ def test_tape_near_the_tip_that_the_strip_covers_is_explained(monkeypatch):
     est = estimate(capture)
     assert est.verdict is Verdict.OK and _tip_mm(capture, est) < 1.5, (est.verdict_reason, _tip_mm(capture, est))
     assess = fit.assess
-    monkeypatch.setattr(fit, "assess", lambda *a: assess(*a[:12]))     # without the strip's silhouettes
+    monkeypatch.setattr(fit, "assess", lambda *a, **k: assess(*a[:12]))   # without the strip's silhouettes
     before = estimate(capture)
     assert before.verdict is Verdict.HIDDEN and _tip_mm(capture, before) < 1.5
