@@ -113,10 +113,12 @@ on the joint moves to the pre-grasp pose (a pad swept through a curled tape's bo
 it out of the jaw: the "missed" grasps of seeds 400037 and 400177)."""
 MAX_JOINT_STEP_RAD = 0.25      # per ~5 mm of a straight segment: more means a singularity or a flip
 PATH_STEP_M = 0.005
-WRIST_PLAN_MARGIN_M = 0.001
-"""The wrist keeps this much more than the clearance along the planned straight moves [m]:
-executed, the arm's joints differ slightly from the planned IK samples and the safety check
-runs again on them (a fresh campaign's plan passed at 5.0 mm and was stopped at 4.9)."""
+PLAN_MARGIN_M = 0.001
+"""The tool and the wrist keep this much more than the clearance along the planned straight
+moves [m]: executed, the arm's joints differ slightly from the planned IK samples, and each
+straight move is checked again from the pose the arm actually reached (a fresh campaign's
+plan passed the wrist at 5.0 mm and was stopped at 4.9; fresh 941160's left finger, planned
+at 5.0 mm from the part, was stopped at 4.99 on the approach)."""
 
 
 class PlanRefused(TaskFailed):
@@ -539,10 +541,11 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
     tcp_from_flange = invert(gripper.flange_from_tcp)
     flange = {k: matrix_to_pose6(T @ tcp_from_flange) for k, T in world_from_tcp.items()}
     points, shape = solid if solid is not None else (gripper.check_points_flange(), gripper.shape())
+    planned = dataclasses.replace(limits, clearance=limits.clearance + PLAN_MARGIN_M)
     if precheck:
         try:
             for name in ("grasp", "pregrasp", names[-1]):
-                check_linear_move(limits, flange[name], flange[name], limits.max_tcp_speed, limits.max_tcp_accel,
+                check_linear_move(planned, flange[name], flange[name], limits.max_tcp_speed, limits.max_tcp_accel,
                                   points, shape)
         except SafetyError as e:
             raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits", str(e)) from None
@@ -550,10 +553,10 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
             raise PlanRefused("unreachable", f"no joint solution puts the gripper at the grasp pose "
                                              f"(TCP at {_mm(grasp_position)} mm)")
     try:
-        check_linear_move(limits, flange["pregrasp"], flange["pregrasp"], limits.max_tcp_speed,
+        check_linear_move(planned, flange["pregrasp"], flange["pregrasp"], limits.max_tcp_speed,
                           limits.max_tcp_accel, points, shape)
         for a, b in zip(names[:-1], names[1:]):
-            check_linear_move(limits, flange[a], flange[b], limits.max_tcp_speed, limits.max_tcp_accel, points,
+            check_linear_move(planned, flange[a], flange[b], limits.max_tcp_speed, limits.max_tcp_accel, points,
                               shape)
     except SafetyError as e:
         raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits", str(e)) from None
@@ -570,9 +573,9 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
                                    speeds.approach if b == "grasp" else speeds.lift, limits.max_joint_speed)
         path += along
     try:
-        # With a millimetre more than the clearance: the arm's joints on the way differ a
+        # With PLAN_MARGIN_M more than the clearance: the arm's joints on the way differ a
         # little from these IK samples, and the same check runs again on them as it moves.
-        check_wrist_clear(dataclasses.replace(limits, clearance=limits.clearance + WRIST_PLAN_MARGIN_M),
+        check_wrist_clear(planned,
                           np.array(path), "approach and lift")
     except SafetyError as e:
         raise PlanRefused("collision", str(e)) from None

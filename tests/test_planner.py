@@ -1,6 +1,8 @@
 """Grasp planner: geometry of the grasp, refusals with reasons, execution on the fake arm."""
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -319,10 +321,13 @@ def test_an_end_hanging_beside_the_parts_face_is_taken_further_back_from_above(m
     shape = gripper.shape()
     points = gripper.check_points_flange()
     _assert_waypoints_clear(plan, shape, limits)
+    # ... with planner.PLAN_MARGIN_M to spare: executed, each straight move is checked again
+    # from the pose the arm actually reached (fresh 941160: planned at 5.0 mm, stopped at 4.99).
+    planned = dataclasses.replace(limits, clearance=limits.clearance + planner.PLAN_MARGIN_M)
     linear = [s.waypoint for s in plan.steps if s.action == "move_linear"]
     previous = "pregrasp"
     for name in linear:
-        check_linear_move(limits, plan.waypoint(previous).flange_pose, plan.waypoint(name).flange_pose,
+        check_linear_move(planned, plan.waypoint(previous).flange_pose, plan.waypoint(name).flange_pose,
                           0.1, 0.8, points, shape, plan.waypoint(previous).q)
         previous = name
     # Executed on the fake arm through the same checks.
@@ -466,3 +471,23 @@ def test_far_back_grasps_are_only_tried_across_the_tape(monkeypatch):
     near = {round(np.degrees(t)) for d, t in tried if d < planner.FAR_INSET_M - 1e-9}
     assert far and all(np.radians(90.0) - 1e-9 <= t <= np.radians(120.0) + 1e-9 for t in far)
     assert {0, 60, 150, 180} <= near
+
+
+def test_straight_moves_are_planned_with_a_margin_over_the_clearance(monkeypatch):
+    """Executed, each straight move is checked again from the pose the arm actually reached,
+    a little off the planned one: a plan passed at the bare clearance can be stopped on the
+    way (fresh 941160: the left finger planned at 5.0 mm from the part, stopped at 4.99). The
+    planner checks every straight move with planner.PLAN_MARGIN_M more."""
+    from tapecell.cell import planner
+
+    seen = []
+    check = planner.check_linear_move
+
+    def spy(limits, *a, **k):
+        seen.append(limits.clearance)
+        return check(limits, *a, **k)
+
+    monkeypatch.setattr(planner, "check_linear_move", spy)
+    tip, nodes = next(random_tapes(1))
+    plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes)
+    assert seen and all(c == pytest.approx(LIMITS.clearance + planner.PLAN_MARGIN_M) for c in seen)
