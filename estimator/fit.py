@@ -37,7 +37,6 @@ analytic Jacobian:
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from typing import Callable
 
@@ -269,8 +268,7 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
                [(a.cost, a.tip_position) for a in near],
-               None if strip_shape is None else lambda: _offsets(capture, strip_shape.quads()),
-               None if strip_shape is None else functools.cache(lambda: _seen_models(evaluator, strip_shape.quads())))
+               None if strip_shape is None else lambda: _offsets(capture, strip_shape.quads()))
     verdict, reason = j.verdict, j.reason
     if verdict is Verdict.OK:
         bend, joint = edgewise_bend(shape.frames)

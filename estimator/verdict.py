@@ -592,17 +592,14 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
            observed: Sequence[np.ndarray], models: Sequence[np.ndarray], origins: Sequence[tuple[int, int]],
            tip_position: np.ndarray, tip_rotation: np.ndarray, best_cost: float,
            alternatives: Sequence[tuple[float, np.ndarray]],
-           strip_offsets: Callable[[], np.ndarray] | None = None,
-           strip_models: Callable[[], Sequence[np.ndarray]] | None = None) -> Judgement:
+           strip_offsets: Callable[[], np.ndarray] | None = None) -> Judgement:
     """The whole judgement of an estimate (see the module's text). ``observed``, ``models``:
     each view's observed silhouette (ignored pixels cleared) and the estimate's, as uint8
     0/1 crops whose top-left pixels are ``origins``; ``view_costs``: eq. 7 per view.
     ``strip_offsets``: () -> the per-view mean boundary distances [px] of the strip the tip
     frame comes from (the estimator's strip stage), which stand for the plate chain's where
     these do not explain a view and the strip's worst view is better explained (see
-    :func:`explaining_offsets`). ``strip_models``: () -> that strip's silhouettes, crops
-    like ``models``: observed tape near the tip that the plate chain leaves out but the strip
-    covers (a curl within the last plate, which the tip frame follows) is explained."""
+    :func:`explaining_offsets`)."""
     plate_offsets = view_offsets(view_costs, observed, models)
     offsets = explaining_offsets(plate_offsets, strip_offsets)
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
@@ -619,11 +616,6 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
         tips.append(uv[0])
         regions, ahead = (unexplained(o, m, uv[0] - np.asarray(xy, float), uv[0] - uv[1], uv[2] - uv[0])
                           if s_ else (0.0, 0.0))
-        if s_ and strip_models is not None and (regions > LOCATE_UNEXPLAINED_PX or ahead > UNEXPLAINED_PX):
-            # What the strip covers is explained: its silhouette joins the plate chain's.
-            fine = strip_models()[len(extra)]
-            regions, ahead = unexplained(o, cv2.bitwise_or(m, fine), uv[0] - np.asarray(xy, float), uv[0] - uv[1],
-                                         uv[2] - uv[0])
         extra.append(regions)
         beyond.append(ahead)
     # A view locates the end (counts towards the two) where nothing near it is left
