@@ -575,8 +575,7 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
     try:
         # With PLAN_MARGIN_M more than the clearance: the arm's joints on the way differ a
         # little from these IK samples, and the same check runs again on them as it moves.
-        check_wrist_clear(planned,
-                          np.array(path), "approach and lift")
+        check_wrist_clear(planned, np.array(path), "approach and lift")
     except SafetyError as e:
         raise PlanRefused("collision", str(e)) from None
     waypoints = tuple(Waypoint(k, world_from_tcp[k], flange[k], q[k]) for k in names)

@@ -160,7 +160,8 @@ def fit_default(capture: Capture, callback: Callback | None = None, thorough: bo
             # stuck on a worse branch, poor_fit; the other's strip explained the views).
             other = first.strip(chain, uncurled[0], cfg)
             theirs = other(cfg.strip_frame_weight)
-            if silhouette_costs(theirs[None])[0] < silhouette_costs(output[None])[0]:
+            ours_cost, theirs_cost = silhouette_costs(np.array([output, theirs]))
+            if theirs_cost < ours_cost:
                 strip, output, (angles, trace, cost) = other, theirs, uncurled
         plate = angles
         # What estimate() falls back to, in order, while the chain's silhouette cost is
@@ -457,6 +458,4 @@ def _trace_costs(capture: Capture, trace: list) -> list[float]:
     if not trace:
         return []
     quads = np.array([forward_kinematics(capture.tape, a).quads() for a in trace])
-    evaluator = CostEvaluator([make_target(v, roi=_cost_roi(v, quads.reshape(-1, 4, 3))) for v in capture.views],
-                              capture.scene)
-    return [float(c) for c in evaluator.costs(quads)]
+    return _evaluator(capture, quads.reshape(-1, 4, 3)).costs(quads).tolist()

@@ -2,7 +2,8 @@
 
 randomise the tape -> park the arm out of view -> render, segment, estimate -> plan ->
 execute with the simulated UR5e -> check that both pads closed on the tape, across it,
-and that the tape held between them followed the gripper through the lift. The result is a `tape-episode/1` dict.
+and that the tape held between them followed the gripper through the lift. The result is
+a `tape-episode/1` dict.
 """
 from __future__ import annotations
 

@@ -458,8 +458,9 @@ def test_an_interrupted_campaign_ends_its_workers_at_once():
 
 
 def test_the_held_point_is_found_and_followed_along_the_centre_line():
-    """sim.episode.HeldPoint (with estimator.metrics.centerline_at): the success check's point where the pads hold the tape, by arc
-    length along the true centre line, found on closing and read again after the lift. A
+    """sim.episode.HeldPoint (with estimator.metrics.centerline_at): the success check's
+    point where the pads hold the tape, by arc length along the true centre line, found on
+    closing and read again after the lift. A
     tape lifted with the jaw does not lag; one sliding 10 mm along itself through the pads
     lags 10 mm, though the centre line's point nearest the jaw is as near as before."""
     from tapecell.estimator.capture import Truth
