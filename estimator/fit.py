@@ -256,11 +256,16 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     """(verdict, reason, tip_views, alternatives, per-view offsets [px], whether the strip's
     offsets judged) of the output ``shape`` whose
     ``view_costs`` ``evaluator`` gave; ``best_cost``: the plate fit's eq.-11 cost, the
-    scale of the ``hypotheses`` [(cost, angles)]; ``strip_shape``: the strip the tip frame
-    comes from, whose fit to the views may stand for the plate chain's
-    (:func:`verdict.explaining_offsets`)."""
+    scale of the ``hypotheses`` [(cost, angles)] or [:class:`Alternative`];
+    ``strip_shape``: the strip the tip frame comes from, whose fit to the views may stand
+    for the plate chain's (:func:`verdict.explaining_offsets`)."""
     near = []
-    for cost, a in hypotheses:
+    for h in hypotheses:
+        if isinstance(h, Alternative):
+            if is_close_alternative(h.cost, best_cost):
+                near.append(h)
+            continue
+        cost, a = h
         if is_close_alternative(cost, best_cost):
             alt = forward_kinematics(capture.tape, a)
             near.append(Alternative(cost, alt.nodes[-1].copy(), alt.frames[-1].copy(), a))
@@ -375,9 +380,11 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
 
 
 def _look(capture: Capture, method: str, callback: Callback | None, thorough: bool, config: FitConfig,
-          second_look: bool, first: FirstStage | None = None) -> Estimate:
+          second_look: bool, first: FirstStage | None = None, final: bool = True) -> Estimate:
     """:func:`estimate` once its arguments are checked; ``first``: the capture's
-    :class:`FirstStage` when the first look made it (its masks were judged sound then)."""
+    :class:`FirstStage` when the first look made it (its masks were judged sound then);
+    ``final``: the answer (not the second look inside it), whose alternatives may not
+    explain the views better than it does (:func:`_cheapest_first`)."""
     from .paper import fit_paper
 
     start = time.perf_counter()
@@ -447,9 +454,74 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
             # strip cannot follow it lowered the scale alternatives are weighed on, and
             # made an ambiguous part capture 9.5 mm off "ok" (fresh 860000).
             look = dataclasses.replace(look, hook_bends=())
-        second = _look(capture, method, None, True, look, True, first)
-        return dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
-    return est
+        second = _look(capture, method, None, True, look, True, first, final=False)
+        est = dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
+    return _cheapest_first(capture, est, first, config) if final and method == "default" else est
+
+
+def _output(capture: Capture, first: FirstStage, angles: np.ndarray, config: FitConfig):
+    """The chain :func:`estimate` outputs from the plate fit ``angles`` (n, 3), by the same
+    stages and guard as its answer (the strip, its tip-frame pull; the chain without the
+    pull, then the plate fit, where the chain explains the views far worse than the plate
+    fit): (its :class:`Alternative`, shape, view costs, evaluator, the strip's shape or None,
+    the plate fit's eq.-11 cost)."""
+    shape, view_costs, evaluator = _costed(capture, angles)
+    plate_cost = combine(view_costs)
+    if config.strip:
+        strip = first.strip(Chain(capture.tape, cfg=config), angles, config)
+        for weight in ([config.strip_frame_weight] if config.strip_frame_weight > 0 else []) + [0.0]:
+            out = strip(weight)
+            o_shape, o_costs, o_evaluator = _costed(capture, out)
+            if combine(o_costs) <= config.strip_guard * plate_cost:
+                alt = Alternative(combine(o_costs), strip.tip[0].copy(), strip.tip[1].copy(), out)
+                return alt, o_shape, o_costs, o_evaluator, strip.fine, plate_cost
+    alt = Alternative(plate_cost, shape.nodes[-1].copy(), shape.frames[-1].copy(), angles)
+    return alt, shape, view_costs, evaluator, None, plate_cost
+
+
+def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: FitConfig) -> Estimate:
+    """``est`` such that no alternative it reports explains the views better than it does
+    (issue 13). An alternative is a plate fit, costed as such; the answer is the chain the
+    strip stage made of its own plate fit, whose cost may be above its plate fit's (up to
+    FitConfig.strip_guard times). Compared like for like, each alternative cheaper than the
+    answer is made the chain the estimator would output from it (:func:`_output`): where it
+    then still costs less, it becomes the answer, judged afresh with the old answer among
+    its alternatives, and never "ok" (a search that returned the costlier shape first is
+    not sure of either: "ambiguous", so the needle may settle it); where it does not, it is
+    reported as output (its cost, tip and chain), and dropped where its tip lies within
+    DISTINCT_TIP_M of the answer's (the same end once fitted). The time counts."""
+    cheaper = [a for a in est.alternatives if a.cost < est.cost]
+    if not cheaper:
+        return est
+    start = time.perf_counter()
+    made = {id(a): _output(capture, first, a.angles, config) for a in cheaper}
+    best = min(made.values(), key=lambda m: m[0].cost)
+    if best[0].cost >= est.cost:
+        alternatives = tuple(a for a in (made[id(a)][0] if id(a) in made else a for a in est.alternatives)
+                             if np.linalg.norm(a.tip_position - est.tip_position) > DISTINCT_TIP_M)
+        return dataclasses.replace(est, alternatives=tuple(sorted(alternatives, key=lambda a: a.cost)),
+                                   time_s=est.time_s + time.perf_counter() - start)
+    alt, shape, view_costs, evaluator, strip_shape, plate_cost = best
+    old = Alternative(est.cost, est.tip_position, est.tip_rotation, est.angles)
+    others = [made[id(a)][0] if id(a) in made else a for a in est.alternatives]
+    others = [a for a in others if a is not alt and np.linalg.norm(a.tip_position - alt.tip_position) > DISTINCT_TIP_M]
+    cost = combine(view_costs)
+    verdict, reason, tip_views, near, offsets, _ = _judge(
+        capture, evaluator, view_costs, shape, alt.tip_position, alt.tip_rotation, min(plate_cost, cost),
+        sorted(others, key=lambda a: a.cost))
+    # The old answer stays among the alternatives, close or not: the needle may probe it.
+    alternatives = tuple(sorted({id(a): a for a in (old, *near)}.values(), key=lambda a: a.cost))
+    if verdict is Verdict.OK:
+        d = float(np.linalg.norm(old.tip_position - alt.tip_position))
+        verdict, reason = Verdict.AMBIGUOUS, (f"the search answered first with a shape whose tip is {1e3 * d:.0f} mm "
+                                              f"away and explains the views worse (cost {old.cost:.3f} vs "
+                                              f"{cost:.3f}): not sure of either")
+    history = CostHistory(lambda: _trace_costs(capture, list(est.trace) + [alt.angles]))
+    return dataclasses.replace(
+        est, nodes=shape.nodes, angles=alt.angles, tip_position=alt.tip_position, tip_rotation=alt.tip_rotation,
+        cost=cost, view_costs=view_costs, history=history, verdict=verdict, verdict_reason=reason,
+        tip_views=tip_views, alternatives=alternatives, trace=tuple(est.trace) + (alt.angles,),
+        view_offsets_px=offsets, time_s=est.time_s + time.perf_counter() - start)
 
 
 def _trace_costs(capture: Capture, trace: list) -> list[float]:

@@ -693,3 +693,52 @@ def test_a_rival_the_first_look_found_is_not_lost_by_the_second():
     assert est.verdict is Verdict.AMBIGUOUS
     assert min(np.linalg.norm(a.tip_position - capture.truth.tip_position) for a in est.alternatives) < 0.005
 
+
+
+def test_no_reported_alternative_explains_the_views_better_than_the_answer():
+    """Issue 13: never return a shape whose cost is beaten by one of the reported
+    alternatives. A part capture (908080, the end behind the part from one camera) whose
+    curl-replaced plate fit was output as a chain costing 0.543 (poor_fit, 23 mm off) while
+    an alternative plate fit cost 0.307: made the chain the estimator outputs, that
+    alternative costs 0.222 and its end is 3.5 mm off. It becomes the answer, not "ok"
+    (the needle settles it), the old answer among its alternatives."""
+    capture = make_capture(908080, SyntheticOptions(part=True, cameras=2))
+    est = estimate(capture)
+    assert all(a.cost >= est.cost for a in est.alternatives), (est.cost, [a.cost for a in est.alternatives])
+    assert _tip_mm(capture, est) < 5.0
+    assert est.verdict is not Verdict.OK
+    assert any(a.cost > est.cost for a in est.alternatives)
+
+
+def test_an_answer_beaten_by_its_alternative_swaps_places_with_it_and_is_never_ok():
+    """The rule's mechanism (fit._cheapest_first) on a clean capture's right answer, handed
+    over as the alternative of a wrong "ok" answer (its chain bent the other way) that costs
+    more: the right shape becomes the answer, "ambiguous" (a search that answered with the
+    costlier shape first is sure of neither), with the wrong one among its alternatives, and
+    the time it took counts."""
+    from tapecell.estimator import fit as F
+    from tapecell.estimator.chain import Chain
+    from tapecell.estimator.refine import mirrors
+    from tapecell.estimator.result import Alternative
+    from tapecell.estimator.silhouette import combine
+
+    capture = make_capture(61003, SyntheticOptions(cameras=2))
+    right = estimate(capture, second_look=False)
+    assert right.verdict is Verdict.OK and _tip_mm(capture, right) < 2.0
+    first = F.FirstStage(capture, Chain(capture.tape, cfg=DEFAULT_CONFIG), DEFAULT_CONFIG)
+    wrong_angles = mirrors(first.angles)[0]
+    shape, view_costs, _ = F._costed(capture, wrong_angles)
+    assert float(np.linalg.norm(shape.nodes[-1] - right.tip_position)) > 0.010
+    fitted = F.forward_kinematics(capture.tape, first.angles)
+    first_tip = fitted.nodes[-1]
+    plate = Alternative(first.cost, first_tip, fitted.frames[-1], first.angles)
+    wrong = dataclasses.replace(right, angles=wrong_angles, nodes=shape.nodes, tip_position=shape.nodes[-1],
+                                tip_rotation=shape.frames[-1], cost=combine(view_costs), view_costs=view_costs,
+                                alternatives=(plate,), trace=(), time_s=0.0)
+    assert wrong.cost > plate.cost
+    out = F._cheapest_first(capture, wrong, first, DEFAULT_CONFIG)
+    assert out.verdict is Verdict.AMBIGUOUS and "explains the views worse" in out.verdict_reason
+    assert _tip_mm(capture, out) < 2.0 and float(np.linalg.norm(out.tip_position - first_tip)) < 0.010
+    assert out.cost < wrong.cost and all(a.cost >= out.cost for a in out.alternatives)
+    assert any(np.allclose(a.tip_position, wrong.tip_position) for a in out.alternatives)
+    assert out.time_s > 0.0 and len(out.history) == 1 and out.history[0] == pytest.approx(out.cost)
