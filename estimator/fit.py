@@ -488,8 +488,10 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     then still costs less, it becomes the answer, judged afresh with the old answer among
     its alternatives, and never "ok" (a search that returned the costlier shape first is
     not sure of either: "ambiguous", so the needle may settle it); where it does not, it is
-    reported as output (its cost, tip and chain), and dropped where its tip lies within
-    DISTINCT_TIP_M of the answer's (the same end once fitted). The time counts."""
+    reported as output (its cost, tip and chain). Either way every shape reported before
+    stays an alternative (as it was where it does not cost less than the answer), but one
+    whose tip lies within DISTINCT_TIP_M of the answer's (the same end once fitted). The
+    time counts."""
     cheaper = [a for a in est.alternatives if a.cost < est.cost]
     if not cheaper:
         return est
@@ -503,14 +505,18 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
                                    time_s=est.time_s + time.perf_counter() - start)
     alt, shape, view_costs, evaluator, strip_shape, plate_cost = best
     old = Alternative(est.cost, est.tip_position, est.tip_rotation, est.angles)
-    others = [made[id(a)][0] if id(a) in made else a for a in est.alternatives]
-    others = [a for a in others if a is not alt and np.linalg.norm(a.tip_position - alt.tip_position) > DISTINCT_TIP_M]
     cost = combine(view_costs)
-    verdict, reason, tip_views, near, offsets, _ = _judge(
-        capture, evaluator, view_costs, shape, alt.tip_position, alt.tip_rotation, min(plate_cost, cost),
-        sorted(others, key=lambda a: a.cost))
-    # The old answer stays among the alternatives, close or not: the needle may probe it.
-    alternatives = tuple(sorted({id(a): a for a in (old, *near)}.values(), key=lambda a: a.cost))
+    # The others as they were (the plate fits the needle would probe), but those cheaper
+    # than the new answer, made output too.
+    others = [made[id(a)][0] if a.cost < cost else a for a in est.alternatives]
+    others = [a for a in others if a is not alt and np.linalg.norm(a.tip_position - alt.tip_position) > DISTINCT_TIP_M]
+    others = sorted([old] + others, key=lambda a: a.cost)
+    verdict, reason, tip_views, _, offsets, _ = _judge(
+        capture, evaluator, view_costs, shape, alt.tip_position, alt.tip_rotation, min(plate_cost, cost), others)
+    # Every shape reported before stays among the alternatives, within the margin of the
+    # new answer's cost or not: each was a hypothesis the needle may probe (a fresh episode,
+    # 941060, lost the one its needle had confirmed).
+    alternatives = tuple(others)
     if verdict is Verdict.OK:
         d = float(np.linalg.norm(old.tip_position - alt.tip_position))
         verdict, reason = Verdict.AMBIGUOUS, (f"the search answered first with a shape whose tip is {1e3 * d:.0f} mm "

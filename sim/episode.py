@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M,
-                                 clearly_closest, end_measurable, hypotheses_to_probe, hypothesis, replan_insets)
+                                 TRUNK_CHECK_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis, replan_insets)
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -374,7 +374,8 @@ class _Needle:
         (:func:`tapecell.cell.probe.corners_on_tape` of their :meth:`corner_touches`)?"""
         from tapecell.cell.probe import corners_on_tape
 
-        found = [None if h is None else h[0] for h in self.corner_touches(tip, R, width)]
+        self.last_corners = self.corner_touches(tip, R, width)
+        found = [None if h is None else h[0] for h in self.last_corners]
         if self.notes is not None:
             self.notes.setdefault("probed_corners_mm", []).extend(
                 None if d is None else round(1e3 * d, 2) for d in found)
@@ -386,7 +387,7 @@ class _Needle:
         TRUNK_TOUCH_M (see :data:`tapecell.cell.probe.TRUNK_TOUCH_M`)?"""
         from tapecell.cell.probe import TRUNK_TOUCH_M, trunk_point
 
-        hit = self.touch("trunk", trunk_point(tip, R), R)
+        hit = self.last_trunk = self.touch("trunk", trunk_point(tip, R), R)
         if self.notes is not None:
             self.notes.setdefault("probed_trunk_mm", []).append(None if hit is None else round(1e3 * hit[0], 2))
         return hit is not None and hit[0] <= TRUNK_TOUCH_M
@@ -399,16 +400,72 @@ class _Needle:
         points = tape_points(tip, R, width, self.params.inset)
         return [self.touch(f"corner {side}{turn}", points[f"tip_{side}"], R) for side in ("left", "right")]
 
-    def end_frame(self, tip: np.ndarray, R: np.ndarray, width: float) -> np.ndarray | None:
-        """The frame of the end at ``tip``: ``R`` when both its corners are tape
-        (:meth:`corners_on_tape`), else the twist the corners find (:meth:`_twist_frame`);
-        None when neither is, or when the frame found fails the trunk check
-        (:meth:`trunk_on_tape`: the tape leaves the end's trunk where the pads would hold it;
-        the twist does not change that), a traced end's too (its frame is the trace's last
-        5 mm step; a tape curled tighter behind it would leave the jaw's straight inset as
-        well)."""
-        frame = R if self.corners_on_tape(tip, R, width) else self._twist_frame(tip, R, width)
-        return frame if frame is not None and self.trunk_on_tape(tip, frame) else None
+    def end_frame(self, tip: np.ndarray, R: np.ndarray, width: float, plane: bool = True) -> np.ndarray | None:
+        """The frame of the end at ``tip``: where both its corners at ``R`` are tape
+        (:meth:`corners_on_tape`), the twist their touches measure (:meth:`_touched_frame`), else
+        ``R``; where they are not, the twist the corners find (:meth:`_twist_frame`); None when
+        neither is, or when the frame found fails the trunk check (:meth:`trunk_on_tape`: the
+        tape leaves the end's trunk where the pads would hold it; the twist does not change
+        that), a traced end's too (its frame is the trace's last 5 mm step; a tape curled
+        tighter behind it would leave the jaw's straight inset as well). With ``plane``, the
+        frame turned onto the plane of the corners' and the trunk point's touches
+        (:meth:`_plane_frame`); a traced end keeps its trace's frame (on a curl the touches
+        2 and 12 mm in span a bend the trace followed step by step)."""
+        if self.corners_on_tape(tip, R, width):
+            measured = self._touched_frame(tip, R, width)
+            frame = R if measured is None else measured
+        else:
+            frame = self._twist_frame(tip, R, width)
+        if frame is None or not self.trunk_on_tape(tip, frame):
+            return None
+        return self._plane_frame(frame) if plane else frame
+
+    def _plane_frame(self, frame: np.ndarray) -> np.ndarray:
+        """``frame`` (whose corners and trunk point were just touched, all tape) turned onto
+        the plane of the three touches, where it is more than TOUCHED_TWIST_DEG off: the
+        trunk from the trunk point's touch to the corners' midpoint, the left axis through
+        the corners. Each touch is made along ``frame``'s normal, so an end pitched about
+        its width axis is met nearer or further at the corners than at the trunk point
+        (2 mm and 12 mm in from the end): confirmed ends whose corners were both touched
+        3.4-3.7 mm off, their twist right, were 32-34 deg off in normal."""
+        left, right = (h[1] for h in self.last_corners)
+        trunk = 0.5 * (left + right) - self.last_trunk[1]
+        if np.linalg.norm(trunk) < 0.5 * TRUNK_CHECK_M or trunk @ frame[:, 0] <= 0:
+            return frame
+        lateral = (left - right) / np.linalg.norm(left - right)
+        along = trunk - (trunk @ lateral) * lateral       # the trunk square to the corners' line
+        along /= np.linalg.norm(along)
+        touched = np.column_stack([along, lateral, np.cross(along, lateral)])
+        turn = np.degrees(np.arccos(np.clip(0.5 * (np.trace(frame.T @ touched) - 1.0), -1.0, 1.0)))
+        if turn <= TOUCHED_TWIST_DEG or turn > TOUCHED_MAX_DEG:
+            return frame
+        return touched
+
+    def _touched_frame(self, tip: np.ndarray, R: np.ndarray, width: float) -> np.ndarray | None:
+        """The frame the corners just touched at ``R`` measure (their touches' lateral axis,
+        square to the trunk), where it turns ``R`` about the trunk by more than
+        TOUCHED_TWIST_DEG and its own corners are tape, touched nearer than ``R``'s; else None
+        (``R`` stands). Each
+        corner is touched along ``R``'s normal: an end twisted by θ from ``R`` is met
+        about (half the width less the inset)·tan θ nearer or further than aimed, within
+        PROBE_CORNER_M up to ~40 deg, so corners "on tape" left confirmed ends 10-40 deg off
+        in normal, and a jaw pitched by the wrong normal closed one pad on air."""
+        hits = self.last_corners
+        if any(h is None for h in hits):
+            return None
+        trunk = R[:, 0]
+        left = hits[0][1] - hits[1][1]
+        lateral = left - (left @ trunk) * trunk
+        if np.linalg.norm(lateral) < 0.5 * width:
+            return None
+        measured = _frame_along(trunk, left)
+        turn = np.degrees(np.arccos(np.clip(measured[:, 1] @ R[:, 1], -1.0, 1.0)))
+        if turn <= TOUCHED_TWIST_DEG:
+            return None
+        if self.corners_on_tape(tip, measured, width) and max(h[0] for h in self.last_corners) < max(h[0] for h in hits):
+            return measured
+        self.last_corners = hits    # R stands, and so do its corners' touches
+        return None
 
     def _twist_frame(self, tip: np.ndarray, R: np.ndarray, width: float) -> np.ndarray | None:
         """The twist of an end whose corners at ``R`` are not both tape (a hooked end seen
@@ -443,11 +500,15 @@ def _frame_along(trunk: np.ndarray, left: np.ndarray) -> np.ndarray:
 
 
 def _twisted(frame: np.ndarray, R: np.ndarray) -> str:
-    """The words a reason gets where the corners gave the end a frame other than ``R``."""
-    return "" if frame is R else "; its twist measured at the corners"
+    """The words a reason gets where the needle's touches gave the end a frame other than ``R``."""
+    return "" if frame is R else "; its frame measured by the needle's touches"
 
 
 TWIST_SEARCH_DEG = (30.0, -30.0, 60.0, -60.0)
+TOUCHED_TWIST_DEG = 8.0
+TOUCHED_MAX_DEG = 45.0
+"""An end whose corners are tape at the estimate's frame takes the twist their touches
+measure where it differs by more than this [deg] (:meth:`_Needle._touched_frame`)."""
 """The turns about the trunk [deg] with which the needle looks for the corners of a confirmed
 end whose own corners are not both tape (:meth:`_Needle.end_frame`)."""
 
@@ -697,7 +758,7 @@ def _trace(needle: _Needle, angles: np.ndarray, spec, width: float):
             if half is not None and half[0] <= PROBE_CONFIRM_M and (half[1] - p) @ R[:, 0] > 0:
                 walked += float(np.linalg.norm(half[1] - p))
                 p = half[1]
-            frame = needle.end_frame(p, R, width)
+            frame = needle.end_frame(p, R, width, plane=False)
             return None if frame is None else (p, frame, walked)
         R = _frame_along(nxt - p, R[:, 1])
         walked += float(np.linalg.norm(nxt - p))

@@ -114,3 +114,36 @@ def test_the_trunk_check_refuses_an_end_bent_off_where_the_pads_would_hold_it():
     assert needle.end_frame(tip, bent, WIDTH) is None
     hit = needle.touch("trunk", tip - TRUNK_CHECK_M * bent[:, 0], bent)
     assert hit is None or hit[0] > TRUNK_TOUCH_M
+
+
+def _turned(frame: np.ndarray, axis: int, deg: float) -> np.ndarray:
+    """``frame`` turned by ``deg`` about its own column ``axis`` (0 trunk, 1 left)."""
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    about = {0: [[1, 0, 0], [0, c, -s], [0, s, c]], 1: [[c, 0, s], [0, 1, 0], [-s, 0, c]]}[axis]
+    return frame @ np.array(about)
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip(0.5 * (np.trace(a.T @ b) - 1.0), -1.0, 1.0))))
+
+
+def test_the_touches_measure_the_frame_of_an_end_whose_corners_are_tape():
+    """A straight tape; the end's frame at the true tip, twisted 25 deg about its trunk, or
+    pitched 20 deg about its width axis. Each is confirmed as it is (both corners touched
+    within PROBE_CORNER_M, tape at the trunk point), but a jaw pitched by such a normal
+    closed one pad on air (fresh 945075, 38 deg off). The frame the needle returns is the
+    one its touches measure, within 5 deg of the tape's (before: the estimate's, 20-25 deg
+    off); a frame already right is returned as it is."""
+    from tapecell.cell.probe import PROBE_CORNER_M
+
+    centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
+    tip, right = centre[-1], frames[-1] * [1.0, 1.0, -1.0]    # a rotation: normal = trunk x left
+    needle = LineNeedle(centre, frames)
+    assert needle.end_frame(tip, right, WIDTH) is right
+    for axis, deg in ((0, 25.0), (0, -25.0), (1, 20.0), (1, -20.0)):
+        wrong = _turned(right, axis, deg)
+        touches = needle.corner_touches(tip, wrong, WIDTH)
+        assert all(h is not None and h[0] <= PROBE_CORNER_M for h in touches)
+        frame = needle.end_frame(tip, wrong, WIDTH)
+        assert frame is not None
+        assert _angle_deg(frame, right) < 5.0, (axis, deg, _angle_deg(frame, right))
