@@ -459,24 +459,23 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     return _cheapest_first(capture, est, first, config) if final and method == "default" else est
 
 
-def _output(capture: Capture, first: FirstStage, angles: np.ndarray, config: FitConfig):
-    """The chain :func:`estimate` outputs from the plate fit ``angles`` (n, 3), by the same
-    stages and guard as its answer (the strip, its tip-frame pull; the chain without the
-    pull, then the plate fit, where the chain explains the views far worse than the plate
-    fit): (its :class:`Alternative`, shape, view costs, evaluator, the strip's shape or None,
-    the plate fit's eq.-11 cost)."""
-    shape, view_costs, evaluator = _costed(capture, angles)
-    plate_cost = combine(view_costs)
+def _output(capture: Capture, first: FirstStage, alt: Alternative, config: FitConfig):
+    """The chain :func:`estimate` outputs from the plate fit of the hypothesis ``alt``, by
+    the same stages and guard as its answer (the strip, its tip-frame pull; the chain
+    without the pull, then the plate fit, where the chain costs more than
+    FitConfig.strip_guard times the plate fit's cost as the search gave it): (it as an
+    :class:`Alternative`, its shape, view costs, evaluator, the strip's shape or None)."""
     if config.strip:
-        strip = first.strip(Chain(capture.tape, cfg=config), angles, config)
+        strip = first.strip(Chain(capture.tape, cfg=config), alt.angles, config)
         for weight in ([config.strip_frame_weight] if config.strip_frame_weight > 0 else []) + [0.0]:
             out = strip(weight)
-            o_shape, o_costs, o_evaluator = _costed(capture, out)
-            if combine(o_costs) <= config.strip_guard * plate_cost:
-                alt = Alternative(combine(o_costs), strip.tip[0].copy(), strip.tip[1].copy(), out)
-                return alt, o_shape, o_costs, o_evaluator, strip.fine, plate_cost
-    alt = Alternative(plate_cost, shape.nodes[-1].copy(), shape.frames[-1].copy(), angles)
-    return alt, shape, view_costs, evaluator, None, plate_cost
+            shape, view_costs, evaluator = _costed(capture, out)
+            if combine(view_costs) <= config.strip_guard * alt.cost:
+                made = Alternative(combine(view_costs), strip.tip[0].copy(), strip.tip[1].copy(), out)
+                return made, shape, view_costs, evaluator, strip.fine
+    shape, view_costs, evaluator = _costed(capture, alt.angles)
+    made = Alternative(combine(view_costs), shape.nodes[-1].copy(), shape.frames[-1].copy(), alt.angles)
+    return made, shape, view_costs, evaluator, None
 
 
 def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: FitConfig) -> Estimate:
@@ -484,49 +483,59 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     (issue 13). An alternative is a plate fit, costed as such; the answer is the chain the
     strip stage made of its own plate fit, whose cost may be above its plate fit's (up to
     FitConfig.strip_guard times). Compared like for like, each alternative cheaper than the
-    answer is made the chain the estimator would output from it (:func:`_output`): where it
-    then still costs less, it becomes the answer, judged afresh with the old answer among
-    its alternatives, and never "ok" (a search that returned the costlier shape first is
-    not sure of either: "ambiguous", so the needle may settle it); where it does not, it is
-    reported as output (its cost, tip and chain). Either way every shape reported before
-    stays an alternative (as it was where it does not cost less than the answer), but one
-    whose tip lies within DISTINCT_TIP_M of the answer's (the same end once fitted). The
-    time counts."""
-    cheaper = [a for a in est.alternatives if a.cost < est.cost]
+    answer is made the chain the estimator would output from it (:func:`_output`).
+
+    Where one then still costs less, the cheapest becomes the answer, judged afresh, and
+    the old answer joins its alternatives; the others stay as they were (the plate fits
+    whose tips the needle probes), made output only where cheaper than the new answer; one
+    ending within DISTINCT_TIP_M of the new answer's end is the same end and is dropped.
+    The swap never makes an answer "ok" nor changes what the cell does with it: "ok" and
+    "hidden" or "ambiguous" answers stay probed ("ambiguous" where the new judgement is
+    "ok" or "poor_fit": a search that answered with the costlier shape first is sure of
+    neither, and every shape probed before is still there), a "poor_fit" stays "poor_fit"
+    (its alternatives are not probed, :func:`tapecell.cell.probe.end_measurable`; its end is
+    measured only where the new judgement is "poor_fit" for it).
+
+    Where none costs less, each is reported as output (its cost, tip and chain), and one
+    that then ends within DISTINCT_TIP_M of the answer's end is dropped, unless the answer
+    is "ambiguous" (its rivals are what the needle probes). The time counts."""
+    cheaper = [k for k, a in enumerate(est.alternatives) if a.cost < est.cost]
     if not cheaper:
         return est
     start = time.perf_counter()
-    made = {id(a): _output(capture, first, a.angles, config) for a in cheaper}
-    best = min(made.values(), key=lambda m: m[0].cost)
-    if best[0].cost >= est.cost:
-        alternatives = tuple(a for a in (made[id(a)][0] if id(a) in made else a for a in est.alternatives)
-                             if np.linalg.norm(a.tip_position - est.tip_position) > DISTINCT_TIP_M)
+    made = {k: _output(capture, first, est.alternatives[k], config) for k in cheaper}
+    k_best = min(made, key=lambda k: made[k][0].cost)
+    if made[k_best][0].cost >= est.cost:
+        alternatives = [made[k][0] if k in made else a for k, a in enumerate(est.alternatives)]
+        if est.verdict is not Verdict.AMBIGUOUS:
+            alternatives = [a for k, a in enumerate(alternatives) if k not in made or
+                            np.linalg.norm(a.tip_position - est.tip_position) > DISTINCT_TIP_M]
         return dataclasses.replace(est, alternatives=tuple(sorted(alternatives, key=lambda a: a.cost)),
                                    time_s=est.time_s + time.perf_counter() - start)
-    alt, shape, view_costs, evaluator, strip_shape, plate_cost = best
-    old = Alternative(est.cost, est.tip_position, est.tip_rotation, est.angles)
+    alt, shape, view_costs, evaluator, strip_shape = made[k_best]
     cost = combine(view_costs)
-    # The others as they were (the plate fits the needle would probe), but those cheaper
-    # than the new answer, made output too.
-    others = [made[id(a)][0] if a.cost < cost else a for a in est.alternatives]
-    others = [a for a in others if a is not alt and np.linalg.norm(a.tip_position - alt.tip_position) > DISTINCT_TIP_M]
+    old = Alternative(est.cost, est.tip_position, est.tip_rotation, est.angles)
+    others = [made[k][0] if a.cost < cost else a for k, a in enumerate(est.alternatives) if k != k_best]
+    others = [a for a in others if np.linalg.norm(a.tip_position - alt.tip_position) > DISTINCT_TIP_M]
     others = sorted([old] + others, key=lambda a: a.cost)
     verdict, reason, tip_views, _, offsets, _ = _judge(
-        capture, evaluator, view_costs, shape, alt.tip_position, alt.tip_rotation, min(plate_cost, cost), others)
-    # Every shape reported before stays among the alternatives, within the margin of the
-    # new answer's cost or not: each was a hypothesis the needle may probe (a fresh episode,
-    # 941060, lost the one its needle had confirmed).
-    alternatives = tuple(others)
-    if verdict is Verdict.OK:
-        d = float(np.linalg.norm(old.tip_position - alt.tip_position))
-        verdict, reason = Verdict.AMBIGUOUS, (f"the search answered first with a shape whose tip is {1e3 * d:.0f} mm "
-                                              f"away and explains the views worse (cost {old.cost:.3f} vs "
-                                              f"{cost:.3f}): not sure of either")
-    history = CostHistory(lambda: _trace_costs(capture, list(est.trace) + [alt.angles]))
+        capture, evaluator, view_costs, shape, alt.tip_position, alt.tip_rotation,
+        min(est.alternatives[k_best].cost, cost), others, strip_shape)
+    d = float(np.linalg.norm(old.tip_position - alt.tip_position))
+    swapped = (f"the search answered first with a shape whose tip is {1e3 * d:.0f} mm away and explains the "
+               f"views worse (cost {old.cost:.3f} vs {cost:.3f})")
+    if est.verdict is Verdict.POOR_FIT and verdict is not Verdict.POOR_FIT:
+        # Not the first answer's reason: it may send the needle to measure an end (PAST_END,
+        # END_UNEXPLAINED), and this is another shape's end.
+        verdict, reason = Verdict.POOR_FIT, f"{swapped}, and was a poor fit: not sure of either"
+    elif est.verdict is not Verdict.POOR_FIT and verdict in (Verdict.OK, Verdict.POOR_FIT):
+        why = "not sure of either" if verdict is Verdict.OK else f"this one is judged: {reason}"
+        verdict, reason = Verdict.AMBIGUOUS, f"{swapped}: {why}"
+    history = CostHistory(lambda: list(est.history) + [cost])
     return dataclasses.replace(
         est, nodes=shape.nodes, angles=alt.angles, tip_position=alt.tip_position, tip_rotation=alt.tip_rotation,
         cost=cost, view_costs=view_costs, history=history, verdict=verdict, verdict_reason=reason,
-        tip_views=tip_views, alternatives=alternatives, trace=tuple(est.trace) + (alt.angles,),
+        tip_views=tip_views, alternatives=tuple(others), trace=tuple(est.trace) + (alt.angles,),
         view_offsets_px=offsets, time_s=est.time_s + time.perf_counter() - start)
 
 

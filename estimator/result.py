@@ -94,7 +94,9 @@ class Estimate:
     or the strip's where :func:`verdict.explaining_offsets` takes them).
     trace: the plate chain's angles (n, 3) after each optimiser iteration of the winner
     (``history`` holds their eq.-11 costs); for plots and recordings.
-    alternatives: other distinct shapes within the verdict's cost margin, best first.
+    alternatives: other distinct shapes within the verdict's cost margin, best first, none
+    cheaper than the estimate; where the answer was swapped for a cheaper alternative
+    (``fit._cheapest_first``), every shape reported before, the first answer among them.
     """
 
     nodes: np.ndarray

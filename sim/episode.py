@@ -20,6 +20,7 @@ import numpy as np
 
 from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M,
                                  TRUNK_CHECK_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis, replan_insets)
+from tapecell.cell.poses import rotation_angle_between
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
 from tapecell.estimator.errors import TapecellError
@@ -409,8 +410,11 @@ class _Needle:
         that), a traced end's too (its frame is the trace's last 5 mm step; a tape curled
         tighter behind it would leave the jaw's straight inset as well). With ``plane``, the
         frame turned onto the plane of the corners' and the trunk point's touches
-        (:meth:`_plane_frame`); a traced end keeps its trace's frame (on a curl the touches
-        2 and 12 mm in span a bend the trace followed step by step)."""
+        (:meth:`_plane_frame`); a traced end keeps its trace's pitch (on a curl the touches
+        2 and 12 mm in span a bend the trace followed step by step), its twist measured at
+        the corners all the same. The frame measured is not checked by touching again, and
+        the tip stays where it was confirmed: within a few mm of the touched plane, inside
+        the open jaw's reach."""
         if self.corners_on_tape(tip, R, width):
             measured = self._touched_frame(tip, R, width)
             frame = R if measured is None else measured
@@ -427,7 +431,8 @@ class _Needle:
         the corners. Each touch is made along ``frame``'s normal, so an end pitched about
         its width axis is met nearer or further at the corners than at the trunk point
         (2 mm and 12 mm in from the end): confirmed ends whose corners were both touched
-        3.4-3.7 mm off, their twist right, were 32-34 deg off in normal."""
+        3.4-3.7 mm off, their twist right, were 32-34 deg off in normal. Not where the turn
+        is more than TOUCHED_MAX_DEG."""
         left, right = (h[1] for h in self.last_corners)
         trunk = 0.5 * (left + right) - self.last_trunk[1]
         if np.linalg.norm(trunk) < 0.5 * TRUNK_CHECK_M or trunk @ frame[:, 0] <= 0:
@@ -436,7 +441,7 @@ class _Needle:
         along = trunk - (trunk @ lateral) * lateral       # the trunk square to the corners' line
         along /= np.linalg.norm(along)
         touched = np.column_stack([along, lateral, np.cross(along, lateral)])
-        turn = np.degrees(np.arccos(np.clip(0.5 * (np.trace(frame.T @ touched) - 1.0), -1.0, 1.0)))
+        turn = np.degrees(rotation_angle_between(frame, touched))
         if turn <= TOUCHED_TWIST_DEG or turn > TOUCHED_MAX_DEG:
             return frame
         return touched
@@ -444,12 +449,13 @@ class _Needle:
     def _touched_frame(self, tip: np.ndarray, R: np.ndarray, width: float) -> np.ndarray | None:
         """The frame the corners just touched at ``R`` measure (their touches' lateral axis,
         square to the trunk), where it turns ``R`` about the trunk by more than
-        TOUCHED_TWIST_DEG and its own corners are tape, touched nearer than ``R``'s; else None
-        (``R`` stands). Each
-        corner is touched along ``R``'s normal: an end twisted by θ from ``R`` is met
-        about (half the width less the inset)·tan θ nearer or further than aimed, within
-        PROBE_CORNER_M up to ~40 deg, so corners "on tape" left confirmed ends 10-40 deg off
-        in normal, and a jaw pitched by the wrong normal closed one pad on air."""
+        TOUCHED_TWIST_DEG (at most TOUCHED_MAX_DEG) and its own corners are tape, touched
+        nearer than ``R``'s; else None (``R`` stands, and its corners' touches are restored
+        as the last). Each corner is touched along ``R``'s normal: an end twisted by θ from
+        ``R`` is met about (half the width less the inset)·tan θ nearer or further than
+        aimed, within PROBE_CORNER_M up to ~40 deg, so corners "on tape" left confirmed ends
+        10-40 deg off in normal, and a jaw pitched by the wrong normal closed one pad on
+        air."""
         hits = self.last_corners
         if any(h is None for h in hits):
             return None
@@ -460,7 +466,7 @@ class _Needle:
             return None
         measured = _frame_along(trunk, left)
         turn = np.degrees(np.arccos(np.clip(measured[:, 1] @ R[:, 1], -1.0, 1.0)))
-        if turn <= TOUCHED_TWIST_DEG:
+        if turn <= TOUCHED_TWIST_DEG or turn > TOUCHED_MAX_DEG:
             return None
         if self.corners_on_tape(tip, measured, width) and max(h[0] for h in self.last_corners) < max(h[0] for h in hits):
             return measured
@@ -505,12 +511,14 @@ def _twisted(frame: np.ndarray, R: np.ndarray) -> str:
 
 
 TWIST_SEARCH_DEG = (30.0, -30.0, 60.0, -60.0)
-TOUCHED_TWIST_DEG = 8.0
-TOUCHED_MAX_DEG = 45.0
-"""An end whose corners are tape at the estimate's frame takes the twist their touches
-measure where it differs by more than this [deg] (:meth:`_Needle._touched_frame`)."""
 """The turns about the trunk [deg] with which the needle looks for the corners of a confirmed
 end whose own corners are not both tape (:meth:`_Needle.end_frame`)."""
+TOUCHED_TWIST_DEG = 8.0
+TOUCHED_MAX_DEG = 45.0
+"""An end whose corners and trunk point are tape takes the frame their touches measure
+(:meth:`_Needle._touched_frame`, :meth:`_Needle._plane_frame`) where it turns the end's frame
+by more than TOUCHED_TWIST_DEG and at most TOUCHED_MAX_DEG [deg] (a larger turn is no
+measurement of this end: corners "on tape" within PROBE_CORNER_M bound the twist to ~40 deg)."""
 
 
 def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None, capture: Capture | None = None,
@@ -552,7 +560,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                 short.append(k)
         report = [None if d is None else round(1e3 * d, 2) for d in found]
         on_tape = [k for k, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
-        best, reason, cornered = confirmed(found), "", False
+        best, reason = confirmed(found), ""
         if best is None and len(on_tape) > 1:
             # Several tips lie on the tape (a fold's edge is tape as the true end is): probe
             # where the shapes disagree instead, each at the point of its own end farthest from
@@ -572,13 +580,15 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                 # Nor which is closer: the one touched tip whose corners are tape, if only one.
                 whole = [j for j in on_tape if needle.corners_on_tape(hypotheses[j][0], hypotheses[j][1], width)]
                 if len(whole) == 1 and needle.trunk_on_tape(hypotheses[whole[0]][0], hypotheses[whole[0]][1]):
-                    best, cornered = whole[0], True
+                    best = whole[0]
                     reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip): the "
                               f"only touched tip of {len(on_tape)} whose corners are tape")
         elif best is not None:
             reason = f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip)"
         frame = None
-        if best is not None and not cornered:
+        if best is not None:
+            # (Where its corners and trunk were checked already, to choose it, again: the
+            # frame their touches measure is this end's.)
             frame = needle.end_frame(hypotheses[best][0], hypotheses[best][1], width)
             if frame is None:
                 best = None              # a corner in the air at every twist: the "tip" is not the tape's end

