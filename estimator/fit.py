@@ -489,12 +489,13 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     the old answer joins its alternatives; the others stay as they were (the plate fits
     whose tips the needle probes), made output only where cheaper than the new answer; one
     ending within DISTINCT_TIP_M of the new answer's end is the same end and is dropped.
-    The swap never makes an answer "ok" nor changes what the cell does with it: "ok" and
-    "hidden" or "ambiguous" answers stay probed ("ambiguous" where the new judgement is
-    "ok" or "poor_fit": a search that answered with the costlier shape first is sure of
-    neither, and every shape probed before is still there), a "poor_fit" stays "poor_fit"
-    (its alternatives are not probed, :func:`tapecell.cell.probe.end_measurable`; its end is
-    measured only where the new judgement is "poor_fit" for it).
+    The swap never makes an answer "ok": where the new judgement is "ok" it is "ambiguous"
+    (a search that answered with the costlier shape first is sure of neither; the needle
+    may settle it among the shapes, the old answer one of them). A "hidden" or "ambiguous"
+    answer stays one the needle probes ("ambiguous" where the new judgement is "poor_fit":
+    every shape probed before is still there). A "poor_fit" answer takes the new
+    judgement (its end measured only where that is "poor_fit" for the new end): refusing
+    it outright lost a grasp on 945127, whose old answer's end the needle had measured.
 
     Where none costs less, each is reported as output (its cost, tip and chain), and one
     that then ends within DISTINCT_TIP_M of the answer's end is dropped, unless the answer
@@ -524,11 +525,7 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     d = float(np.linalg.norm(old.tip_position - alt.tip_position))
     swapped = (f"the search answered first with a shape whose tip is {1e3 * d:.0f} mm away and explains the "
                f"views worse (cost {old.cost:.3f} vs {cost:.3f})")
-    if est.verdict is Verdict.POOR_FIT and verdict is not Verdict.POOR_FIT:
-        # Not the first answer's reason: it may send the needle to measure an end (PAST_END,
-        # END_UNEXPLAINED), and this is another shape's end.
-        verdict, reason = Verdict.POOR_FIT, f"{swapped}, and was a poor fit: not sure of either"
-    elif est.verdict is not Verdict.POOR_FIT and verdict in (Verdict.OK, Verdict.POOR_FIT):
+    if verdict is Verdict.OK or (verdict is Verdict.POOR_FIT and est.verdict is not Verdict.POOR_FIT):
         why = "not sure of either" if verdict is Verdict.OK else f"this one is judged: {reason}"
         verdict, reason = Verdict.AMBIGUOUS, f"{swapped}: {why}"
     history = CostHistory(lambda: list(est.history) + [cost])
