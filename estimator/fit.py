@@ -489,9 +489,11 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     the old answer joins its alternatives; the others stay as they were (the plate fits
     whose tips the needle probes), made output only where cheaper than the new answer; one
     ending within DISTINCT_TIP_M of the new answer's end is the same end and is dropped.
-    The swap never makes an answer "ok": where the new judgement is "ok" it is "ambiguous"
-    (a search that answered with the costlier shape first is sure of neither; the needle
-    may settle it among the shapes, the old answer one of them). A "hidden" or "ambiguous"
+    The swap never makes a new "ok": where the new judgement is "ok" it is "ambiguous" (a
+    search that answered with the costlier shape first is sure of neither; the needle may
+    settle it among the shapes, the old answer one of them), but where the old answer was
+    "ok" too and ends within DISTINCT_TIP_M of it (the same end, found twice: fresh
+    part-948053, 1.2 and 1.7 mm off, 1 mm apart, was a needless refusal). A "hidden" or "ambiguous"
     answer stays one the needle probes ("ambiguous" where the new judgement is "poor_fit":
     every shape probed before is still there). A "poor_fit" answer takes the new
     judgement (its end measured only where that is "poor_fit" for the new end): refusing
@@ -525,9 +527,13 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     d = float(np.linalg.norm(old.tip_position - alt.tip_position))
     swapped = (f"the search answered first with a shape whose tip is {1e3 * d:.0f} mm away and explains the "
                f"views worse (cost {old.cost:.3f} vs {cost:.3f})")
-    if verdict is Verdict.OK or (verdict is Verdict.POOR_FIT and est.verdict is not Verdict.POOR_FIT):
+    same_end = est.verdict is Verdict.OK and d <= DISTINCT_TIP_M
+    probed_before = est.verdict is not Verdict.POOR_FIT
+    if (verdict is Verdict.OK and not same_end) or (verdict is Verdict.POOR_FIT and probed_before):
         why = "not sure of either" if verdict is Verdict.OK else f"this one is judged: {reason}"
         verdict, reason = Verdict.AMBIGUOUS, f"{swapped}: {why}"
+    elif verdict is Verdict.OK:
+        others = [a for a in others if a is not old]   # the same end, found twice
     history = CostHistory(lambda: list(est.history) + [cost])
     return dataclasses.replace(
         est, nodes=shape.nodes, angles=alt.angles, tip_position=alt.tip_position, tip_rotation=alt.tip_rotation,

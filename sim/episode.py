@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M,
-                                 TRUNK_CHECK_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis, replan_insets)
+                                 TRUNK_CHECK_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis,
+                                 replan_insets)
 from tapecell.cell.poses import rotation_angle_between
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
