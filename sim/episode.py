@@ -514,6 +514,9 @@ def _twisted(frame: np.ndarray, R: np.ndarray) -> str:
 TWIST_SEARCH_DEG = (30.0, -30.0, 60.0, -60.0)
 """The turns about the trunk [deg] with which the needle looks for the corners of a confirmed
 end whose own corners are not both tape (:meth:`_Needle.end_frame`)."""
+SAME_END_M = 0.001
+"""Hypotheses whose tips lie within this [m] of an earlier one's are not probed again
+(:func:`resolve_by_probing`): the needle cannot tell them apart."""
 TOUCHED_TWIST_DEG = 8.0
 TOUCHED_MAX_DEG = 45.0
 """An end whose corners and trunk point are tape takes the frame their touches measure
@@ -546,7 +549,12 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     hypotheses += [(a.tip_position, a.tip_rotation, a) for a in est.alternatives]
     with _Needle(cell, sim_arm, probes, notes) as needle:
         inset = needle.params.inset
-        hits = [needle.touch(f"hypothesis {k}", tape_points(tip, R, width, inset)["tip"], R)
+        # A hypothesis ending where an earlier one does is the same end to the needle (an
+        # alternative whose plate fit ended 22 mm away and whose output chain ends at the
+        # answer's, fit._cheapest_first: touched alike, the two were told apart by nothing).
+        same = [any(np.linalg.norm(tip - hypotheses[j][0]) < SAME_END_M for j in range(k))
+                for k, (tip, _, _) in enumerate(hypotheses)]
+        hits = [None if same[k] else needle.touch(f"hypothesis {k}", tape_points(tip, R, width, inset)["tip"], R)
                 for k, (tip, R, _) in enumerate(hypotheses)]
         found = [None if h is None else h[0] for h in hits]
         # A hypothesis whose "tip" lies on the tape's body touches tape too: the needle

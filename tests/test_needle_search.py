@@ -153,3 +153,41 @@ def test_the_touches_measure_the_frame_of_an_end_whose_corners_are_tape():
     assert needle.end_frame(tip, pitched, WIDTH, plane=False) is pitched
     twisted = right @ rot_x(np.radians(25.0))
     assert _angle_deg(needle.end_frame(tip, twisted, WIDTH, plane=False), right) < 5.0
+
+
+def test_hypotheses_ending_at_the_same_point_are_probed_once(monkeypatch):
+    """An ambiguous estimate whose alternative ends where the answer does (a plate fit 22 mm
+    away whose output chain ends at the answer's end, fit._cheapest_first; 949140): probed
+    as two, both tips touched alike and nothing told them apart, and the episode was
+    refused. The needle probes the same end once (SAME_END_M) and confirms it."""
+    import types
+
+    import tapecell.sim.episode as E
+    from tapecell.cell.config import load_cell_config
+    from tapecell.estimator import Alternative, Estimate, Verdict
+
+    centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
+    tip, right = centre[-1], frames[-1]
+
+    class Needle(LineNeedle):
+        def __init__(self, *args):
+            super().__init__(centre, frames)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+    monkeypatch.setattr(E, "_Needle", Needle)
+    cell = types.SimpleNamespace(config=load_cell_config())
+    angles = np.zeros((cell.config.tape.estimator_plates, 3))
+    est = Estimate(np.zeros((3, 3)), angles, tip, right, 0.0557, np.zeros(2), 0.0, verdict=Verdict.AMBIGUOUS,
+                   verdict_reason="a shape with its tip 22 mm away explains the views nearly as well",
+                   alternatives=(Alternative(0.0563, tip + 1e-4, right, angles),))
+    kept, touched = E.resolve_by_probing(cell, None, est, WIDTH)
+    assert kept.verdict is Verdict.OK and kept.verdict_reason.startswith("hypothesis 0 confirmed")
+    assert touched[0] is not None and touched[1] is None
+    monkeypatch.setattr(E, "SAME_END_M", 0.0)
+    kept, touched = E.resolve_by_probing(cell, None, est, WIDTH)
+    assert kept.verdict is Verdict.AMBIGUOUS and None not in touched[:2]
