@@ -486,22 +486,22 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     answer is made the chain the estimator would output from it (:func:`_output`).
 
     Where one then still costs less, the cheapest becomes the answer, judged afresh, and
-    the old answer joins its alternatives; the others stay as they were (the plate fits
-    whose tips the needle probes), made output only where cheaper than the new answer; one
-    ending within DISTINCT_TIP_M of the new answer's end is the same end and is dropped.
+    the old answer joins its alternatives. Else, and for the others, each alternative is
+    reported as the plate fit it is, with the cost of its output as ``output_cost`` where
+    its own cost is below the answer's: its tip is where the needle probes it (reported as
+    its output chain instead, an alternative whose plate fit the needle confirmed ended
+    near the answer's end, and fresh episodes 941060 and 951030 lost it).
+
     The swap never makes a new "ok": where the new judgement is "ok" it is "ambiguous" (a
     search that answered with the costlier shape first is sure of neither; the needle may
     settle it among the shapes, the old answer one of them), but where the old answer was
     "ok" too and ends within DISTINCT_TIP_M of it (the same end, found twice: fresh
-    part-948053, 1.2 and 1.7 mm off, 1 mm apart, was a needless refusal). A "hidden" or "ambiguous"
-    answer stays one the needle probes ("ambiguous" where the new judgement is "poor_fit":
-    every shape probed before is still there). A "poor_fit" answer takes the new
-    judgement (its end measured only where that is "poor_fit" for the new end): refusing
-    it outright lost a grasp on 945127, whose old answer's end the needle had measured.
-
-    Where none costs less, each is reported as output (its cost, tip and chain), and one
-    that then ends within DISTINCT_TIP_M of the answer's end is dropped, unless the answer
-    is "ambiguous" (its rivals are what the needle probes). The time counts."""
+    part-948053, 1.2 and 1.7 mm off, 1 mm apart, was a needless refusal). A "hidden" or
+    "ambiguous" answer stays one the needle probes ("ambiguous" where the new judgement is
+    "poor_fit": every shape probed before is still there). A "poor_fit" answer takes the
+    new judgement (its end measured only where that is "poor_fit" for the new end):
+    refusing it outright lost a grasp on 945127, whose old answer's end the needle had
+    measured. The time counts."""
     cheaper = [k for k, a in enumerate(est.alternatives) if a.cost < est.cost]
     if not cheaper:
         return est
@@ -509,16 +509,16 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     made = {k: _output(capture, first, est.alternatives[k], config) for k in cheaper}
     k_best = min(made, key=lambda k: made[k][0].cost)
     if made[k_best][0].cost >= est.cost:
-        alternatives = [made[k][0] if k in made else a for k, a in enumerate(est.alternatives)]
-        if est.verdict is not Verdict.AMBIGUOUS:
-            alternatives = [a for k, a in enumerate(alternatives) if k not in made or
-                            np.linalg.norm(a.tip_position - est.tip_position) > DISTINCT_TIP_M]
-        return dataclasses.replace(est, alternatives=tuple(sorted(alternatives, key=lambda a: a.cost)),
-                                   time_s=est.time_s + time.perf_counter() - start)
+        alternatives = tuple(dataclasses.replace(a, output_cost=made[k][0].cost) if k in made else a
+                             for k, a in enumerate(est.alternatives))
+        return dataclasses.replace(est, alternatives=alternatives, time_s=est.time_s + time.perf_counter() - start)
     alt, shape, view_costs, evaluator, strip_shape = made[k_best]
     cost = combine(view_costs)
     old = Alternative(est.cost, est.tip_position, est.tip_rotation, est.angles)
-    others = [made[k][0] if a.cost < cost else a for k, a in enumerate(est.alternatives) if k != k_best]
+    # The others as they were, those cheaper than the new answer with their outputs' costs
+    # (none below it: the new answer is the cheapest output).
+    others = [dataclasses.replace(a, output_cost=made[k][0].cost) if a.cost < cost else a
+              for k, a in enumerate(est.alternatives) if k != k_best]
     others = [a for a in others if np.linalg.norm(a.tip_position - alt.tip_position) > DISTINCT_TIP_M]
     others = sorted([old] + others, key=lambda a: a.cost)
     verdict, reason, tip_views, _, offsets, _ = _judge(

@@ -62,16 +62,28 @@ class Alternative:
     """Another distinct shape that explains the views almost as well as the estimate.
 
     cost: its silhouette cost (eq. 11); tip_position (3,) [m] and tip_rotation (3, 3) its
-    end frame; angles (n, 3) its plate chain [rad]."""
+    end frame; angles (n, 3) its plate chain [rad]. output_cost: where its cost is below
+    the estimate's, the eq.-11 cost of the chain the estimator would output from it (its
+    strip stage, like the estimate's own chain), which is not (``fit._cheapest_first``);
+    else None."""
 
     cost: float
     tip_position: np.ndarray
     tip_rotation: np.ndarray
     angles: np.ndarray
+    output_cost: float | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {"cost": float(self.cost), "tip": {"position": np.asarray(self.tip_position).tolist(),
-                                                  "rotation": np.asarray(self.tip_rotation).tolist()}}
+        out = {"cost": float(self.cost), "tip": {"position": np.asarray(self.tip_position).tolist(),
+                                                 "rotation": np.asarray(self.tip_rotation).tolist()}}
+        if self.output_cost is not None:
+            out["output_cost"] = float(self.output_cost)
+        return out
+
+    @property
+    def compared_cost(self) -> float:
+        """Its cost compared like for like with an estimate's: as the estimator's output."""
+        return self.cost if self.output_cost is None else self.output_cost
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,8 +107,10 @@ class Estimate:
     trace: the plate chain's angles (n, 3) after each optimiser iteration of the winner
     (``history`` holds their eq.-11 costs); for plots and recordings.
     alternatives: other distinct shapes within the verdict's cost margin, best first, none
-    cheaper than the estimate; where the answer was swapped for a cheaper alternative
-    (``fit._cheapest_first``), every shape reported before, the first answer among them.
+    cheaper than the estimate when compared as the estimator's output
+    (:attr:`Alternative.compared_cost`); where the answer was swapped for such a cheaper
+    alternative (``fit._cheapest_first``), every shape reported before, the first answer
+    among them.
     """
 
     nodes: np.ndarray

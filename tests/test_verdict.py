@@ -576,7 +576,7 @@ def test_a_hairpin_fold_at_the_end_gets_the_thorough_look():
         est = estimate(capture, config=config)
         assert est.verdict is not Verdict.OK
         assert _tip_mm(capture, est) < 1.5
-        assert all(a.cost >= est.cost for a in est.alternatives)
+        assert all(a.compared_cost >= est.cost for a in est.alternatives)
 
 
 def test_an_end_hooked_back_out_of_sight_is_found_by_the_thorough_look():
@@ -709,7 +709,7 @@ def test_no_reported_alternative_explains_the_views_better_than_the_answer():
     makes an answer "ok": the needle settles it)."""
     capture = make_capture(908080, SyntheticOptions(part=True, cameras=2))
     est = estimate(capture)
-    assert all(a.cost >= est.cost for a in est.alternatives), (est.cost, [a.cost for a in est.alternatives])
+    assert all(a.compared_cost >= est.cost for a in est.alternatives), (est.cost, est.alternatives)
     assert _tip_mm(capture, est) < 5.0
     assert est.verdict is Verdict.AMBIGUOUS and "explains the views worse" in est.verdict_reason
     old = [a for a in est.alternatives if np.linalg.norm(a.tip_position - capture.truth.tip_position) > 0.015]
@@ -745,6 +745,30 @@ def test_an_answer_beaten_by_its_alternative_swaps_places_with_it_and_is_never_o
     out = F._cheapest_first(capture, wrong, first, DEFAULT_CONFIG)
     assert out.verdict is Verdict.AMBIGUOUS and "explains the views worse" in out.verdict_reason
     assert _tip_mm(capture, out) < 2.0 and float(np.linalg.norm(out.tip_position - first_tip)) < 0.010
-    assert out.cost < wrong.cost and all(a.cost >= out.cost for a in out.alternatives)
+    assert out.cost < wrong.cost and all(a.compared_cost >= out.cost for a in out.alternatives)
     assert any(np.allclose(a.tip_position, wrong.tip_position) for a in out.alternatives)
     assert out.time_s > 0.0 and len(out.history) == 1 and out.history[0] == pytest.approx(out.cost)
+
+
+def test_an_alternative_cheaper_only_as_a_plate_fit_is_reported_with_its_outputs_cost():
+    """A clean capture's answer (its output chain, from the strip stage, costs 0.071) with
+    its own plate fit (0.049) handed over as an alternative: made the chain the estimator
+    outputs, the plate fit is the answer again, no cheaper. It stays reported as the plate
+    fit it is (its tip is where the needle would probe it), with ``output_cost`` the cost
+    compared with the answer's; nothing else changes."""
+    from tapecell.estimator import fit as F
+    from tapecell.estimator.chain import Chain
+    from tapecell.estimator.result import Alternative
+
+    capture = make_capture(61003, SyntheticOptions(cameras=2))
+    est = estimate(capture, second_look=False)
+    first = F.FirstStage(capture, Chain(capture.tape, cfg=DEFAULT_CONFIG), DEFAULT_CONFIG)
+    fitted = F.forward_kinematics(capture.tape, first.angles)
+    plate = Alternative(first.cost, fitted.nodes[-1], fitted.frames[-1], first.angles)
+    assert plate.cost < est.cost
+    out = F._cheapest_first(capture, dataclasses.replace(est, alternatives=(plate,)), first, DEFAULT_CONFIG)
+    (alt,) = out.alternatives
+    assert alt.cost == plate.cost and alt.tip_position is plate.tip_position
+    assert alt.output_cost == pytest.approx(est.cost, rel=1e-6) and alt.compared_cost >= out.cost
+    assert out.verdict is est.verdict and out.cost == est.cost and out.tip_position is est.tip_position
+    assert alt.to_json()["output_cost"] == pytest.approx(est.cost, rel=1e-6)
