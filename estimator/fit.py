@@ -37,6 +37,7 @@ analytic Jacobian:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from typing import Callable
 
@@ -256,19 +257,10 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     """(verdict, reason, tip_views, alternatives, per-view offsets [px], whether the strip's
     offsets judged) of the output ``shape`` whose
     ``view_costs`` ``evaluator`` gave; ``best_cost``: the plate fit's eq.-11 cost, the
-    scale of the ``hypotheses`` [(cost, angles)] or [:class:`Alternative`];
-    ``strip_shape``: the strip the tip frame comes from, whose fit to the views may stand
-    for the plate chain's (:func:`verdict.explaining_offsets`)."""
-    near = []
-    for h in hypotheses:
-        if isinstance(h, Alternative):
-            if is_close_alternative(h.cost, best_cost):
-                near.append(h)
-            continue
-        cost, a = h
-        if is_close_alternative(cost, best_cost):
-            alt = forward_kinematics(capture.tape, a)
-            near.append(Alternative(cost, alt.nodes[-1].copy(), alt.frames[-1].copy(), a))
+    scale of the ``hypotheses`` [:class:`Alternative`], those within the ambiguity margin
+    of it weighed; ``strip_shape``: the strip the tip frame comes from, whose fit to the
+    views may stand for the plate chain's (:func:`verdict.explaining_offsets`)."""
+    near = [h for h in hypotheses if is_close_alternative(h.cost, best_cost)]
     targets = evaluator.targets
     models = _seen_models(evaluator, shape.quads())
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
@@ -283,6 +275,17 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
             verdict, reason = Verdict.POOR_FIT, (f"the shape {EDGEWISE} by {bend:.0f} deg at joint {joint} (> "
                                                  f"{EDGEWISE_MAX_DEG:g} deg): not a shape a tape takes")
     return verdict, reason, j.tip_views, tuple(near), j.offsets_px, j.by_strip
+
+
+def _hypotheses(capture: Capture, found: list, best_cost: float) -> list[Alternative]:
+    """The hypotheses ``found`` [(eq.-11 cost, angles)] within the ambiguity margin of
+    ``best_cost``, as :class:`Alternative` (their tip frames the plate chains' ends)."""
+    near = []
+    for cost, a in found:
+        if is_close_alternative(cost, best_cost):
+            shape = forward_kinematics(capture.tape, a)
+            near.append(Alternative(cost, shape.nodes[-1].copy(), shape.frames[-1].copy(), a))
+    return near
 
 
 def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
@@ -400,26 +403,26 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
                                                                          first=first)
     else:
         angles, history, evaluations = fit_paper(capture, callback)
-    shape, view_costs, evaluator = _costed(capture, angles)
     if fallback is not None:
-        plate_cost, alternatives = fallback
-        while alternatives and combine(view_costs) > config.strip_guard * plate_cost:
-            # The chain taken from the strip explains the views far worse than the plate
-            # chain's own fit: the tip-frame pull overshot or the strip's fit went astray.
-            # The last alternative is the plate chain itself.
-            angles = alternatives.pop(0)()
-            trace = trace[:-1] + ([angles] if alternatives else [])
-            shape, view_costs, evaluator = _costed(capture, angles)
-            if not alternatives:
-                strip = None   # back to the plate fit: the strip went astray
+        plate_cost, steps = fallback
+        output = angles
+        k, angles, shape, view_costs, evaluator = _within_guard(capture, [lambda: output] + steps, plate_cost,
+                                                                config)
+        if k:
+            trace = trace[:-1] + ([angles] if k < len(steps) else [])
+        if k == len(steps):
+            strip = None   # back to the plate fit: the strip went astray
+    else:
+        shape, view_costs, evaluator = _costed(capture, angles)
     plate_cost = fallback[0] if fallback is not None else combine(view_costs)
     # The tip frame: the strip's end (it follows a tip that curls within one plate, where
     # the last plate is a chord), else the plate chain's F_n at P_C[n].
     tip_position, tip_rotation = (strip.tip if strip is not None
                                   else (shape.nodes[-1].copy(), shape.frames[-1].copy()))
+    scale = min(plate_cost, combine(view_costs))
     verdict, reason, tip_views, alternatives, offsets, by_strip = _judge(
-        capture, evaluator, view_costs, shape, tip_position, tip_rotation, min(plate_cost, combine(view_costs)),
-        found, None if strip is None else strip.fine)
+        capture, evaluator, view_costs, shape, tip_position, tip_rotation, scale, _hypotheses(capture, found, scale),
+        None if strip is None else strip.fine)
     elapsed = time.perf_counter() - start
     if method == "default":
         # The cost per iteration on the eq.-11 scale, for recordings and plots: computed when
@@ -459,22 +462,34 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     return _cheapest_first(capture, est, first, config) if final and method == "default" else est
 
 
+def _within_guard(capture: Capture, chains: list, plate_cost: float, config: FitConfig):
+    """The first of ``chains`` (functions giving angles (n, 3), the plate fit last) that
+    explains the views within FitConfig.strip_guard times the plate fit's eq.-11 cost
+    ``plate_cost`` as the search gave it, else the last: (its index, angles, shape, view
+    costs, evaluator). Before it, the chains taken from the strip explain the views far worse
+    than the plate fit: the tip-frame pull overshot or the strip's fit went astray."""
+    for k, make in enumerate(chains):
+        angles = make()
+        shape, view_costs, evaluator = _costed(capture, angles)
+        if k == len(chains) - 1 or combine(view_costs) <= config.strip_guard * plate_cost:
+            return k, angles, shape, view_costs, evaluator
+
+
 def _output(capture: Capture, first: FirstStage, alt: Alternative, config: FitConfig):
     """The chain :func:`estimate` outputs from the plate fit of the hypothesis ``alt``, by
     the same stages and guard as its answer (the strip, its tip-frame pull; the chain
-    without the pull, then the plate fit, where the chain costs more than
-    FitConfig.strip_guard times the plate fit's cost as the search gave it): (it as an
+    without the pull, then the plate fit: :func:`_within_guard`): (it as an
     :class:`Alternative`, its shape, view costs, evaluator, the strip's shape or None)."""
+    chains = [lambda: alt.angles]
     if config.strip:
         strip = first.strip(Chain(capture.tape, cfg=config), alt.angles, config)
-        for weight in ([config.strip_frame_weight] if config.strip_frame_weight > 0 else []) + [0.0]:
-            out = strip(weight)
-            shape, view_costs, evaluator = _costed(capture, out)
-            if combine(view_costs) <= config.strip_guard * alt.cost:
-                made = Alternative(combine(view_costs), strip.tip[0].copy(), strip.tip[1].copy(), out)
-                return made, shape, view_costs, evaluator, strip.fine
-    shape, view_costs, evaluator = _costed(capture, alt.angles)
-    made = Alternative(combine(view_costs), shape.nodes[-1].copy(), shape.frames[-1].copy(), alt.angles)
+        weights = ([config.strip_frame_weight] if config.strip_frame_weight > 0 else []) + [0.0]
+        chains = [functools.partial(strip, w) for w in weights] + chains
+    k, angles, shape, view_costs, evaluator = _within_guard(capture, chains, alt.cost, config)
+    if k < len(chains) - 1:
+        made = Alternative(combine(view_costs), strip.tip[0].copy(), strip.tip[1].copy(), angles)
+        return made, shape, view_costs, evaluator, strip.fine
+    made = Alternative(combine(view_costs), shape.nodes[-1].copy(), shape.frames[-1].copy(), angles)
     return made, shape, view_costs, evaluator, None
 
 

@@ -458,14 +458,9 @@ class _Needle:
         10-40 deg off in normal, and a jaw pitched by the wrong normal closed one pad on
         air."""
         hits = self.last_corners
-        if any(h is None for h in hits):
+        measured = None if any(h is None for h in hits) else _corners_frame(R[:, 0], hits, width)
+        if measured is None:
             return None
-        trunk = R[:, 0]
-        left = hits[0][1] - hits[1][1]
-        lateral = left - (left @ trunk) * trunk
-        if np.linalg.norm(lateral) < 0.5 * width:
-            return None
-        measured = _frame_along(trunk, left)
         turn = np.degrees(np.arccos(np.clip(measured[:, 1] @ R[:, 1], -1.0, 1.0)))
         if turn <= TOUCHED_TWIST_DEG or turn > TOUCHED_MAX_DEG:
             return None
@@ -488,13 +483,20 @@ class _Needle:
             hits = self.corner_touches(tip, turned, width, f" turned {deg:+.0f} deg")
             if any(h is None or h[0] > PROBE_CORNER_M for h in hits):
                 continue
-            left = hits[0][1] - hits[1][1]
-            if np.linalg.norm(left - (left @ trunk) * trunk) < 0.5 * width:
-                continue
-            measured = _frame_along(trunk, left)
-            if self.corners_on_tape(tip, measured, width):
+            measured = _corners_frame(trunk, hits, width)
+            if measured is not None and self.corners_on_tape(tip, measured, width):
                 return measured
         return None
+
+
+def _corners_frame(trunk: np.ndarray, hits: list, width: float) -> np.ndarray | None:
+    """The end's frame with its trunk along ``trunk`` and its lateral axis through the two
+    corners' touched points ``hits`` [(distance, point) left, right]; None where those lie
+    less than half the ``width`` apart across the trunk (no measure of the lateral axis)."""
+    left = hits[0][1] - hits[1][1]
+    if np.linalg.norm(left - (left @ trunk) * trunk) < 0.5 * width:
+        return None
+    return _frame_along(trunk, left)
 
 
 def _frame_along(trunk: np.ndarray, left: np.ndarray) -> np.ndarray:
