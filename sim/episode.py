@@ -650,9 +650,13 @@ def _traced(needle: _Needle, est, k: int, capture: Capture | None, width: float)
     (:func:`tapecell.cell.probe.refit_hypothesis`: it explains them about as well as the
     best hypothesis, and as a whole, wrong at most at its end: a trace that stopped on the
     tape's body 29 mm from the end left a view unexplained) and ends within PROBE_CONFIRM_M
-    of it; the traced end lies within PAST_END_MAX_M of the hypothesis' own. The refit is
-    the shape acted on, with the traced end and the frame its corners gave. None
-    otherwise."""
+    of it. The traced end lies within PAST_END_MAX_M of the hypothesis' own, or, for a trace
+    that started before the hypothesis' last plate (its end hidden, the shape wrong there),
+    where the tape's length puts it: the length traced within PAST_END_MAX_M of the length
+    that was left. Its frame is the one its corners give (:meth:`_Needle.end_frame`); where
+    they are not tape (a trace runs some millimetres off the centre line as it goes), the
+    refit's tip and frame, its corners tape. The refit is the shape acted on, with that end
+    and frame. None otherwise."""
     from tapecell.cell.probe import refit_hypothesis
 
     if capture is None:
@@ -661,12 +665,20 @@ def _traced(needle: _Needle, est, k: int, capture: Capture | None, width: float)
     out = _trace(needle, shape.angles, capture.tape, width)
     if out is None:
         return None
-    end, frame, walked = out
-    if np.linalg.norm(end - shape.tip_position) > PAST_END_MAX_M:
+    end, R, back, walked = out
+    plate = float(capture.tape.segment_lengths[-1])
+    if (np.linalg.norm(end - shape.tip_position) > PAST_END_MAX_M
+            and (back < plate or abs(walked - back) > PAST_END_MAX_M)):
         return None                 # farther from the hypothesis' end than any end measured
     refitted = refit_hypothesis(capture, est, k, end, 2 * needle.params.inset)
     if refitted is None or np.linalg.norm(refitted.tip_position - end) > PROBE_CONFIRM_M:
         return None
+    frame = needle.end_frame(end, R, width, plane=False)
+    if frame is None:
+        frame = needle.end_frame(refitted.tip_position, refitted.tip_rotation, width)
+        if frame is None:
+            return None
+        end = refitted.tip_position
     reason = (f"the needle traced the tape from hypothesis {k}'s centre line {1e3 * walked:.0f} mm to its end, tape at "
               f"both corners there; the shape refitted through it explains the views")
     return dataclasses.replace(refitted, tip_position=end, tip_rotation=frame, verdict=Verdict.OK, verdict_reason=reason)
@@ -738,26 +750,41 @@ TRACE_BENDS_DEG = (0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0)
 """The bends about the tape's lateral axis [deg] the trace tries, in order, for its next step."""
 TRACE_MAX_STEPS = 10
 """At most this many steps [TRACE_STEP_M each] of a trace."""
-TRACE_BACK_M = (0.010, 0.020)
-"""Where a trace starts: a point of the estimated centre line this far back from its tip [m],
-the first the needle finds tape at."""
+TRACE_BACK_M = (0.010, 0.020, 0.035, 0.045)
+"""Where a trace starts: a point of the estimated centre line this far back from its tip
+along it [m], the first the needle finds tape at. The last two lie on the plate before the
+last: where the end hangs hidden behind the part, the last plate is often wrong and the
+one before it still on the tape."""
+
+
+def _back_along(shape, back: float) -> tuple[np.ndarray, np.ndarray]:
+    """The point of ``shape``'s centre line ``back`` [m] of arc length back from its end, and
+    the frame of the plate it lies on (copied)."""
+    n = len(shape.nodes) - 1
+    for j in range(n - 1, -1, -1):
+        length = float(np.linalg.norm(shape.nodes[j + 1] - shape.nodes[j]))
+        if back < length or j == 0:
+            t = min(1.0, back / length)
+            return shape.nodes[j + 1] - t * (shape.nodes[j + 1] - shape.nodes[j]), shape.frames[j + 1].copy()
+        back -= length
+    raise AssertionError("unreachable")
 
 
 def _trace(needle: _Needle, angles: np.ndarray, spec, width: float):
     """Trace the tape with the needle, from a point of the centre line of the plate chain
-    ``angles`` (of the tape model ``spec``) TRACE_BACK_M back
-    from its end (tape must be touched there, within PROBE_CONFIRM_M) towards its end: each
+    ``angles`` (of the tape model ``spec``) TRACE_BACK_M back from its end along it (the
+    first where tape is touched, within PROBE_CONFIRM_M) towards its end: each
     step TRACE_STEP_M along the trunk bent about the lateral axis by TRACE_BENDS_DEG (tape
     bends out of its plane; a hooked end curls), the first bend that touches tape within
     PROBE_CONFIRM_M taken, the trunk then along the last step; where no bend finds tape, a
-    half step more is tried and the end is the last point touched. Returns (the end, its
-    frame (:meth:`_Needle.end_frame`: its corners tape), how far traced [m]) or None (no
-    tape where the trace starts, tape beyond TRACE_MAX_STEPS, or a corner in the air)."""
+    half step more is tried and the end is the last point touched. Returns (the end, the
+    frame of the trace's last step, how far back from the chain's end it started and how
+    far it traced [m]) or None (no tape where the trace starts, or tape beyond
+    TRACE_MAX_STEPS)."""
     shape = forward_kinematics(spec, angles)
-    R = shape.frames[-1].copy()
     start = None
     for back in TRACE_BACK_M:
-        target = shape.nodes[-1] - back * R[:, 0]
+        target, R = _back_along(shape, back)
         hit = needle.touch(f"trace start {1e3 * back:.0f} mm back", target, R)
         if hit is not None and hit[0] <= PROBE_CONFIRM_M:
             start = hit[1]
@@ -779,8 +806,7 @@ def _trace(needle: _Needle, angles: np.ndarray, spec, width: float):
             if half is not None and half[0] <= PROBE_CONFIRM_M and (half[1] - p) @ R[:, 0] > 0:
                 walked += float(np.linalg.norm(half[1] - p))
                 p = half[1]
-            frame = needle.end_frame(p, R, width, plane=False)
-            return None if frame is None else (p, frame, walked)
+            return p, R, back, walked
         R = _frame_along(nxt - p, R[:, 1])
         walked += float(np.linalg.norm(nxt - p))
         p = nxt

@@ -4,6 +4,7 @@ hooked end, the walk past a tip whose tape goes on, the twist found at the corne
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tapecell.cell.probe import ProbeParams
 from tapecell.estimator import TapeSpec
@@ -61,10 +62,32 @@ def test_the_trace_follows_a_hooked_end_past_the_model():
     spec = TapeSpec(np.full(5, 0.02), WIDTH, np.zeros(3), frames[0])
     out = _trace(needle, np.zeros((5, 3)), spec, WIDTH)
     assert out is not None
-    end, frame, walked = out
+    end, frame, back, walked = out
+    assert back == 0.010
     assert np.linalg.norm(end - centre[-1]) < 0.005
     assert frame[:, 0] @ frames[-1][:, 0] > np.cos(np.radians(35))    # the trunk turned with the curl
     assert walked > 0.015
+    assert needle.end_frame(end, frame, WIDTH, plane=False) is not None   # its corners are tape
+
+
+def test_the_trace_starts_on_the_plate_before_the_last_where_the_last_is_off_the_tape():
+    """A tape standing straight 158 mm up; the model (5 plates of 30 mm) has its last plate
+    bent a right angle away from it (an end hidden behind the part, guessed wrong), the
+    plate before that on the tape. No tape 10 or 20 mm back along the wrong plate: the trace
+    starts 35 mm back from the model's end, on the plate before (115 mm up), and walks up
+    the tape to its end."""
+    centre, frames = hooked_tape(straight=0.158, curl_deg=0.0)
+    needle = LineNeedle(centre, frames)
+    spec = TapeSpec(np.full(5, 0.03), WIDTH, np.zeros(3), frames[0])
+    angles = np.zeros((5, 3))
+    angles[-1, 1] = np.radians(90.0)            # the last plate bent out of the tape's plane
+    out = _trace(needle, angles, spec, WIDTH)
+    assert out is not None
+    end, frame, back, walked = out
+    assert back == 0.035
+    assert np.linalg.norm(end - centre[-1]) < 0.005
+    assert walked == pytest.approx(0.158 - 0.115, abs=0.005)
+    assert frame[:, 0] @ frames[-1][:, 0] > np.cos(np.radians(5))
 
 
 def test_the_trace_refuses_where_no_tape_is_at_its_start():
