@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_WIDE_MARGIN_M,
-                                 TRUNK_CHECK_M, clearly_closest, end_measurable, hypotheses_to_probe, hypothesis,
-                                 replan_insets)
+from tapecell.cell.probe import (GRASP_CHECKED_M, GRASP_RECENTRE_M, PAST_END_MAX_M, PROBE_CONFIRM_M, PROBE_PAST_CLEAR_M,
+                                 PROBE_WIDE_MARGIN_M, TRUNK_CHECK_M, clearly_closest, end_measurable,
+                                 hypotheses_to_probe, hypothesis, replan_insets)
 from tapecell.cell.poses import rotation_angle_between
 from tapecell.estimator import Verdict, estimate, forward_kinematics
 from tapecell.estimator.capture import Capture, View, load_cameras
@@ -530,7 +530,9 @@ measurement of this end: corners "on tape" within PROBE_CORNER_M bound the twist
 def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None, capture: Capture | None = None,
                        notes: dict | None = None):
     """Probe the tips of an estimate that is not ok (ambiguous or hidden) and of its
-    alternatives with the needle, and past each touched tip (tape there: not the end).
+    alternatives with the needle, and past each touched tip (tape there: not the end;
+    where several tips are touched on the tape, tape within PROBE_PAST_CLEAR_M of the point
+    past one, off its trunk's line, puts that tip on the tape's body: not the end either).
     Returns (the estimate to act on, with verdict "ok" when exactly one hypothesis was
     confirmed, else unchanged; per hypothesis the distance [mm] from the aimed point to
     the touched one, None where nothing was touched). A confirmed tip is kept only when both
@@ -569,6 +571,10 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
             if past is not None and past <= PROBE_CONFIRM_M:
                 found[k] = None          # tape beyond its end: not the end
                 short.append(k)
+            elif past is not None and past <= PROBE_PAST_CLEAR_M and len(near) > 1:
+                # Tape near the point past it, off its trunk's line: a tip on the tape's body
+                # (as a refit's, PROBE_PAST_CLEAR_M), not the end, where another tip is on tape too.
+                found[k] = None
         report = [None if d is None else round(1e3 * d, 2) for d in found]
         on_tape = [k for k, d in enumerate(found) if d is not None and d <= PROBE_CONFIRM_M]
         best, reason = confirmed(found), ""

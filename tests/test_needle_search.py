@@ -214,3 +214,46 @@ def test_hypotheses_ending_at_the_same_point_are_probed_once(monkeypatch):
     monkeypatch.setattr(E, "SAME_END_M", 0.0)
     kept, touched = E.resolve_by_probing(cell, None, est, WIDTH)
     assert kept.verdict is Verdict.AMBIGUOUS and None not in touched[:2]
+
+
+def test_a_touched_tip_with_tape_near_the_point_past_it_is_not_the_end(monkeypatch):
+    """Two hypotheses' tips both touched on the tape: the true end (nothing past it) and a
+    "tip" on the tape's body, its trunk 53 deg out of the tape's plane, so that the point
+    6 mm past it is 8 mm off the tape (tape near it, not on its trunk's line; 956082). Both
+    tips' corners are tape, and nothing else tells them apart: the episode was refused.
+    Tape within PROBE_PAST_CLEAR_M of the point past a tip means a tip on the body, as for
+    a refit's: the true end is confirmed."""
+    import types
+
+    import tapecell.sim.episode as E
+    from tapecell.cell.config import load_cell_config
+    from tapecell.estimator import Alternative, Estimate, Verdict
+
+    centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
+    tip, right = centre[-1], frames[-1]
+    a = np.radians(53.0)
+    body_tip = np.array([0.0, 0.0, 0.06])
+    body_frame = np.column_stack([[np.sin(a), 0.0, np.cos(a)], [0.0, 1.0, 0.0], [-np.cos(a), 0.0, np.sin(a)]])
+
+    class Needle(LineNeedle):
+        def __init__(self, *args):
+            super().__init__(centre, frames)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+    past = Needle().distance("past", body_tip + E.PROBE_BEYOND_M * body_frame[:, 0], body_frame)
+    assert E.PROBE_CONFIRM_M < past <= E.PROBE_PAST_CLEAR_M
+    monkeypatch.setattr(E, "_Needle", Needle)
+    cell = types.SimpleNamespace(config=load_cell_config())
+    angles = np.zeros((cell.config.tape.estimator_plates, 3))
+    est = Estimate(np.zeros((3, 3)), angles, body_tip, body_frame, 0.0557, np.zeros(2), 0.0,
+                   verdict=Verdict.AMBIGUOUS, verdict_reason="a shape with its tip 60 mm away explains the views",
+                   alternatives=(Alternative(0.0563, tip, right, angles),))
+    kept, touched = E.resolve_by_probing(cell, None, est, WIDTH)
+    assert kept.verdict is Verdict.OK and kept.verdict_reason.startswith("hypothesis 1 confirmed")
+    assert np.allclose(kept.tip_position, tip)
+    assert touched[0] is None and touched[1] is not None
