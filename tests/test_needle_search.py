@@ -53,6 +53,23 @@ class LineNeedle(_Needle):
         return float(np.linalg.norm(self.surface[k] - target)), self.surface[k].copy()
 
 
+def mounted(centre: np.ndarray, frames: np.ndarray) -> type:
+    """A :class:`LineNeedle` class on the tape (``centre``, ``frames``) that
+    ``resolve_by_probing`` can mount as its ``_Needle`` (no arm: entering does nothing)."""
+
+    class Needle(LineNeedle):
+        def __init__(self, *args):
+            super().__init__(centre, frames)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return None
+
+    return Needle
+
+
 def test_the_trace_follows_a_hooked_end_past_the_model():
     """A 5-plate model standing straight 100 mm up; the tape curls over a quarter turn past
     it. The trace from 10 mm back from the model's end follows the curl to the tape's end
@@ -192,16 +209,7 @@ def test_hypotheses_ending_at_the_same_point_are_probed_once(monkeypatch):
     centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
     tip, right = centre[-1], frames[-1]
 
-    class Needle(LineNeedle):
-        def __init__(self, *args):
-            super().__init__(centre, frames)
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return None
-
+    Needle = mounted(centre, frames)
     monkeypatch.setattr(E, "_Needle", Needle)
     cell = types.SimpleNamespace(config=load_cell_config())
     angles = np.zeros((cell.config.tape.estimator_plates, 3))
@@ -235,16 +243,7 @@ def test_a_touched_tip_with_tape_near_the_point_past_it_is_not_the_end(monkeypat
     body_tip = np.array([0.0, 0.0, 0.06])
     body_frame = np.column_stack([[np.sin(a), 0.0, np.cos(a)], [0.0, 1.0, 0.0], [-np.cos(a), 0.0, np.sin(a)]])
 
-    class Needle(LineNeedle):
-        def __init__(self, *args):
-            super().__init__(centre, frames)
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return None
-
+    Needle = mounted(centre, frames)
     past = Needle().distance("past", body_tip + E.PROBE_BEYOND_M * body_frame[:, 0], body_frame)
     assert E.PROBE_CONFIRM_M < past <= E.PROBE_PAST_CLEAR_M
     monkeypatch.setattr(E, "_Needle", Needle)
