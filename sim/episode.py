@@ -764,16 +764,15 @@ one before it still on the tape."""
 
 
 def _back_along(shape, back: float) -> tuple[np.ndarray, np.ndarray]:
-    """The point of ``shape``'s centre line ``back`` [m] of arc length back from its end, and
-    the frame of the plate it lies on (copied)."""
-    n = len(shape.nodes) - 1
-    for j in range(n - 1, -1, -1):
-        length = float(np.linalg.norm(shape.nodes[j + 1] - shape.nodes[j]))
-        if back < length or j == 0:
-            t = min(1.0, back / length)
-            return shape.nodes[j + 1] - t * (shape.nodes[j + 1] - shape.nodes[j]), shape.frames[j + 1].copy()
-        back -= length
-    raise AssertionError("unreachable")
+    """The point of ``shape``'s centre line ``back`` [m] of arc length back from its end (at
+    most its base), and the frame of the plate it lies on (copied)."""
+    lengths = np.linalg.norm(np.diff(shape.nodes, axis=0), axis=1)
+    j = len(lengths) - 1
+    while j > 0 and back >= lengths[j]:
+        back -= lengths[j]
+        j -= 1
+    t = min(1.0, back / lengths[j])
+    return shape.nodes[j + 1] - t * (shape.nodes[j + 1] - shape.nodes[j]), shape.frames[j + 1].copy()
 
 
 def _trace(needle: _Needle, angles: np.ndarray, spec, width: float):
