@@ -30,14 +30,15 @@ class ProbeError(TaskFailed):
 class ProbeParams:
     """inset: target points lie this far inside the tape's end and edges, so the needle
     lands on the tape, not beside it [m]. standoff: approach starts this far from the
-    surface along the normal [m]. coarse_step, fine_step: approach increments far from and
-    near the surface [m]. speed: approach speed [m/s]."""
+    surface along the normal [m]. coarse_step: the simulated needle, which knows its
+    distance to the tape, moves at far_speed [m/s] while farther than two coarse steps from
+    it, stopping a coarse step short, and at speed [m/s] nearer [m]."""
 
     inset: float = 0.002
     standoff: float = 0.02
     coarse_step: float = 0.002
-    fine_step: float = 0.0001
     speed: float = 0.01
+    far_speed: float = 0.05
 
 
 @dataclass(frozen=True, eq=False)

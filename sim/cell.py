@@ -380,6 +380,19 @@ class SimCell:
         fromto = np.zeros(6)
         return float(min(mujoco.mj_geomDistance(m, d, geom, g, 0.05, fromto) for g in self._tape_geoms))
 
+    def tape_gap_at(self, geom: int, arm_q: np.ndarray) -> float:
+        """:meth:`tape_gap` were the arm at joints ``arm_q`` [rad]; the arm is not moved and no
+        time passes (the world poses are put back as they were)."""
+        qpos = self.arm_qpos                      # a view of the data
+        saved = qpos.copy()
+        qpos[:] = arm_q
+        mujoco.mj_kinematics(self.model, self.data)
+        try:
+            return self.tape_gap(geom)
+        finally:
+            qpos[:] = saved
+            mujoco.mj_kinematics(self.model, self.data)
+
     def gripper_pad_contacts_with_tape(self) -> dict[str, int]:
         """Number of active contacts of each pad ("left", "right") with tape plates."""
         d = self.data

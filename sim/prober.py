@@ -25,7 +25,10 @@ class SimProber:
 
     def _go_to_standoff(self, label: str, point: np.ndarray, approach: np.ndarray) -> np.ndarray:
         """Joint move (closed-form IK, any roll of the needle about its axis) to the needle
-        frame at ``point`` pointing along ``approach``; returns that frame (4x4)."""
+        frame at ``point`` pointing along ``approach``; returns that frame (4x4). Where the
+        needle would meet the tape there already (its shaft through the tape's body), a
+        ProbeError before any move: from this side nothing can be probed (the move there and
+        back cost two turns of the wrist)."""
         from tapecell.cell.kinematics import ik_nearest
 
         flange_from_needle = self.sim.config.tools.flange_from_tcp("needle")
@@ -36,6 +39,9 @@ class SimProber:
             T = base @ R
             q = ik_nearest(T @ np.linalg.inv(flange_from_needle), self.arm.joints())
             if q is not None:
+                if self.sim.tape_gap_at(self._needle, q) <= 0.0:
+                    raise ProbeError(f"{label}: the needle meets the tape at its standoff from "
+                                     f"{np.round(point, 4).tolist()} along {np.round(approach, 3).tolist()}")
                 self.arm.move_joints(q)
                 return T
         raise ProbeError(f"{label}: the needle cannot reach {np.round(point, 4).tolist()} along "
@@ -47,7 +53,7 @@ class SimProber:
         p = self.params
         approach = -normal / np.linalg.norm(normal)
         start = self._go_to_standoff(label, target - p.standoff * approach, approach)
-        travelled = 0.0
+        travelled, reach = 0.0, 2 * p.standoff + p.coarse_step
         while True:
             gap = self.gap()
             if gap <= 0.0:
@@ -55,11 +61,17 @@ class SimProber:
             if travelled > 2 * p.standoff:
                 raise ProbeError(f"{label}: no contact with the tape within {2000 * p.standoff:.0f} mm "
                                  f"of {np.round(target, 4).tolist()}")
-            step = p.coarse_step if gap > 2 * p.coarse_step else min(p.fine_step, max(gap, 1e-5))
+            # Conservative advance: no point of the tape is nearer the needle than the gap, so
+            # a move along the approach by the gap cannot pass through it, and the steps
+            # converge on the first contact along the approach, where a slow continuous
+            # approach meets the tape (as small steps did, at many times the cost). Far from
+            # the tape the needle moves faster and stops a coarse step short of the gap.
+            far = gap > 2 * p.coarse_step
+            step = min(gap - p.coarse_step if far else max(gap, 1e-5), reach - travelled)
             travelled += step
             T = start.copy()
             T[:3, 3] = start[:3, 3] + travelled * approach
-            self.arm.move_tcp(T, speed=p.speed, tool="needle", settle_s=0.3)
+            self.arm.move_tcp(T, speed=p.far_speed if far else p.speed, tool="needle", settle_s=0.3)
         measured = self.arm.tcp_pose("needle")[:3, 3]
         # Back off before the next point so the needle never drags along the tape.
         self.arm.move_tcp(start, speed=0.05, tool="needle")

@@ -18,11 +18,44 @@ def test_probe_sim_measures_the_true_tip():
     lines = []
     result = probe_sim(load_cell_config(), seed=1, n_cameras=2, log=lines.append)
     assert [p.label for p in result["points"]] == list(PROBE_LABELS)
-    # The needle stops on the tape's surface: within half the thickness (+ a fine step).
+    # The needle stops on the tape's surface: within half the thickness (+ the arm's settling).
     assert max(result["e_truth"].values()) < 0.2e-3
     # e (eq. 12) of a reasonable estimate is millimetres at most, and not zero.
     assert all(0 < v < 0.01 for v in result["e_estimate"].values())
     assert any("eq. 12" in l for l in lines)
+
+
+def test_a_side_where_the_needle_would_start_inside_the_tape_is_refused_before_any_move():
+    """The simulated needle knows its distance to the tape: where its standoff would put it
+    through the tape already, that side is refused without moving the arm or passing time
+    (the move there and back cost two wrist flips per probe), the simulation left exactly as
+    it was; from the free side it approaches fast, then slowly, and stops on the surface."""
+    from tapecell.cell.probe import approach_normal, tape_points
+    from tapecell.sim.arm import SimArm
+    from tapecell.sim.cell import SimCell
+    from tapecell.sim.prober import SimProber
+
+    cfg = load_cell_config()
+    with SimCell(cfg, seed=1, n_cameras=2, tool="needle") as sim:
+        arm = SimArm(sim, tool="needle")
+        prober = SimProber(sim, arm)
+        tip = sim.tape_tip_frame()
+        target = tape_points(tip[:3, 3], tip[:3, :3], cfg.tape.width, prober.params.inset)["tip"]
+        normal = approach_normal(target, tip[:3, 2], -target)
+        # Aimed 20 mm beyond the tape along the approach: the standoff is the tape itself.
+        before = (sim.data.time, sim.data.qpos.copy(), sim.data.xpos.copy())
+        with pytest.raises(ProbeError, match="meets the tape at its standoff"):
+            prober.probe("through", target - prober.params.standoff * normal, normal)
+        assert sim.data.time == before[0]
+        assert np.array_equal(sim.data.qpos, before[1]) and np.array_equal(sim.data.xpos, before[2])
+        measured = prober.probe("tip", target, normal).position
+        assert np.linalg.norm(measured - target) < 0.2e-3
+        steps = []
+        sim.step_hook = lambda: steps.append(1)
+        again = prober.probe("tip again", target, normal).position   # from the same standoff
+        assert np.linalg.norm(again - measured) < 0.05e-3
+        # The approach (20 mm) and the back-off: 20 mm at 10 mm/s alone would be 2,000 steps.
+        assert len(steps) < 1500, len(steps)
 
 
 # ------------------------------------------------------------------ real cell, ur_rtde faked
