@@ -30,9 +30,9 @@ class ProbeError(TaskFailed):
 class ProbeParams:
     """inset: target points lie this far inside the tape's end and edges, so the needle
     lands on the tape, not beside it [m]. standoff: approach starts this far from the
-    surface along the normal [m]. coarse_step: the simulated needle, which knows its
-    distance to the tape, moves at far_speed [m/s] while farther than two coarse steps from
-    it, stopping a coarse step short, and at speed [m/s] nearer [m]."""
+    surface along the normal [m]. coarse_step [m], speed and far_speed [m/s]: the simulated
+    needle, which knows its distance to the tape, approaches at far_speed while farther than
+    two coarse steps from it (stopping a coarse step short), then at speed."""
 
     inset: float = 0.002
     standoff: float = 0.02
