@@ -32,7 +32,8 @@ class ProbeParams:
     lands on the tape, not beside it [m]. standoff: approach starts this far from the
     surface along the normal [m]. coarse_step [m], speed and far_speed [m/s]: the simulated
     needle, which knows its distance to the tape, approaches at far_speed while farther than
-    two coarse steps from it (stopping a coarse step short), then at speed."""
+    two coarse steps from it (stopping a coarse step short), then at speed; it backs off
+    at far_speed."""
 
     inset: float = 0.002
     standoff: float = 0.02

@@ -31,13 +31,13 @@ class SimProber:
         back cost two turns of the wrist)."""
         from tapecell.cell.kinematics import ik_nearest
 
-        flange_from_needle = self.sim.config.tools.flange_from_tcp("needle")
+        needle_from_flange = np.linalg.inv(self.sim.config.tools.flange_from_tcp("needle"))
         base = needle_world_from_tcp(point, approach)
         for roll in np.radians(np.arange(0.0, 360.0, 30.0)):
             c, s_ = np.cos(roll), np.sin(roll)
             R = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]])
             T = base @ R
-            q = ik_nearest(T @ np.linalg.inv(flange_from_needle), self.arm.joints())
+            q = ik_nearest(T @ needle_from_flange, self.arm.joints())
             if q is not None:
                 if self.sim.tape_gap_at(self._needle, q) <= 0.0:
                     raise ProbeError(f"{label}: the needle meets the tape at its standoff from "
@@ -74,5 +74,5 @@ class SimProber:
             self.arm.move_tcp(T, speed=p.far_speed if far else p.speed, tool="needle", settle_s=0.3)
         measured = self.arm.tcp_pose("needle")[:3, 3]
         # Back off before the next point so the needle never drags along the tape.
-        self.arm.move_tcp(start, speed=0.05, tool="needle")
+        self.arm.move_tcp(start, speed=p.far_speed, tool="needle")
         return ProbedPoint(label, measured.copy(), np.asarray(target, float))
