@@ -527,6 +527,20 @@ by more than TOUCHED_TWIST_DEG and at most TOUCHED_MAX_DEG [deg] (a larger turn 
 measurement of this end: corners "on tape" within PROBE_CORNER_M bound the twist to ~40 deg)."""
 
 
+ONE_END_M = 0.008
+"""Touched tips whose corners are tape, with nothing past them, all within this [m] of each
+other are one end to the needle (:func:`one_end`): each was touched within PROBE_CONFIRM_M
+of where it was aimed, so tips up to twice that apart can both be the end it touched (fresh
+961065, 3 cameras: the answer's tip, 1.3 mm off, and an alternative's, 4.5 mm from it, were
+refused as two ends). The closest touched is kept; ends farther apart than this stay
+refused (a tip on the tape's body, 28 mm from the end, was touched closer than the end)."""
+
+
+def one_end(tips: list) -> bool:
+    """Do all of ``tips`` [(3,) m] lie within ONE_END_M of each other?"""
+    return all(np.linalg.norm(a - b) <= ONE_END_M for i, a in enumerate(tips) for b in tips[i + 1:])
+
+
 def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None, capture: Capture | None = None,
                        notes: dict | None = None):
     """Probe the tips of an estimate that is not ok (ambiguous or hidden) and of its
@@ -537,7 +551,10 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     confirmed, else unchanged; per hypothesis the distance [mm] from the aimed point to
     the touched one, None where nothing was touched). A confirmed tip is kept only when both
     its corners are tape too (:func:`tapecell.cell.probe.corners_on_tape`), at its own twist
-    or one the corners find (:meth:`_Needle.end_frame`). Where none is confirmed:
+    or one the corners find (:meth:`_Needle.end_frame`). Where several tips are tape and
+    nothing tells them apart, the one whose corners are tape is kept, or, where several
+    such tips lie within ONE_END_M of each other (one end), the one touched closest.
+    Where none is confirmed:
     - the one touched tip with tape on its trunk's line beyond it is walked past
       (:func:`_walk_past`) to the end;
     - else, with none touched within PROBE_CONFIRM_M and ``capture`` given, every tip
@@ -600,6 +617,15 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                     best = whole[0]
                     reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip): the "
                               f"only touched tip of {len(on_tape)} whose corners are tape")
+                elif len(whole) > 1 and one_end([hypotheses[j][0] for j in whole]):
+                    # Several such ends, all within ONE_END_M of each other: one end, measured
+                    # twice; the tip touched closest is kept.
+                    k = min(whole, key=lambda j: found[j])
+                    if needle.trunk_on_tape(hypotheses[k][0], hypotheses[k][1]):
+                        best = k
+                        reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its "
+                                  f"tip): the closest touched of {len(whole)} tips whose corners are tape, all within "
+                                  f"{1e3 * ONE_END_M:.0f} mm of each other (one end)")
         elif best is not None:
             reason = f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip)"
         frame = None
@@ -636,10 +662,14 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
             # only where the ends traced agree (one end): a trace decides nothing between
             # hypotheses the needle could not tell apart, and never where several tips lie
             # on the tape (a fold's edge is tape as the true end is).
-            traced = [t for t in (_traced(needle, est, k, capture, width) for k in range(len(hypotheses)))
-                      if t is not None]
-            if traced and all(np.linalg.norm(t.tip_position - traced[0].tip_position) <= PROBE_CONFIRM_M
-                              for t in traced):
+            traced = []
+            for k in range(len(hypotheses)):
+                t = _traced(needle, est, k, capture, width)
+                if t is not None and traced and np.linalg.norm(t.tip_position - traced[0].tip_position) > PROBE_CONFIRM_M:
+                    traced = []      # two ends: no further trace can make them one
+                    break
+                traced += [t] if t is not None else []
+            if traced:
                 return traced[0], report
     if best is None:
         return est, report

@@ -219,9 +219,15 @@ def test_hypotheses_ending_at_the_same_point_are_probed_once(monkeypatch):
     kept, touched = E.resolve_by_probing(cell, None, est, WIDTH)
     assert kept.verdict is Verdict.OK and kept.verdict_reason.startswith("hypothesis 0 confirmed")
     assert touched[0] is not None and touched[1] is None
+    # Probed as two (and without the rule that tips within ONE_END_M of each other are one
+    # end, which would take the one touched closest): refused.
     monkeypatch.setattr(E, "SAME_END_M", 0.0)
+    monkeypatch.setattr(E, "ONE_END_M", 0.0)
     kept, touched = E.resolve_by_probing(cell, None, est, WIDTH)
     assert kept.verdict is Verdict.AMBIGUOUS and None not in touched[:2]
+    monkeypatch.setattr(E, "ONE_END_M", 0.008)
+    kept, touched = E.resolve_by_probing(cell, None, est, WIDTH)
+    assert kept.verdict is Verdict.OK and "(one end)" in kept.verdict_reason and None not in touched[:2]
 
 
 def test_a_touched_tip_with_tape_near_the_point_past_it_is_not_the_end(monkeypatch):
