@@ -640,7 +640,8 @@ def test_the_crop_keeps_thin_lines_and_drops_speckles():
 def test_an_end_where_the_tape_leaves_the_image_is_not_located():
     """verdict._clear_of_border: observed tape on the image's border within 20 px of the tip
     edge: the tape may go on out of view, so that view does not locate the end; the same end
-    far from the border, or tape that leaves the image far from it, does."""
+    far from the border, or tape that leaves the image far from it, does, and so does an end
+    that touches the border with a corner only (a stretch shorter than half its tip edge)."""
     from tapecell.estimator import Camera
     from tapecell.estimator.verdict import _clear_of_border
 
@@ -657,6 +658,14 @@ def test_an_end_where_the_tape_leaves_the_image_is_not_located():
     assert _clear_of_border(view, observed, (80, 120), far)
     # The same crop not on the image's border (its rows 100..179): nothing leaves the image.
     assert _clear_of_border(view, observed, (80, 100), near - np.array([0.0, 0.2, 0.0]))
+    # An end short of the border whose one corner touches it (3 of the 20 px of its tip edge,
+    # less than BORDER_RUN_FRACTION: shell-963019): the tape does not cross the border there.
+    corner = np.zeros((80, 40), np.uint8)
+    corner[:75, 10:30] = 1
+    corner[75:, 10:13] = 1
+    assert _clear_of_border(view, corner, (80, 120), near)
+    corner[75:, 10:21] = 1           # 11 px: more than half the tip edge, the tape may go on
+    assert not _clear_of_border(view, corner, (80, 120), near)
 
 
 def test_a_garbage_view_is_refused_without_a_second_look(monkeypatch):
