@@ -18,7 +18,8 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   within ``EDGE_RUN_PX``: a tip over the tape's own body is not located by that
   silhouette); the tape's continuation past the tip would be seen, or background is seen
   before the occluder; no observed tape leaves the image near the tip edge
-  (``BORDER_CLEAR_PX``); at most ``LOCATE_UNEXPLAINED_PX`` of observed tape near the tip is
+  (``BORDER_CLEAR_PX``; a corner of the end touching the border is not the tape leaving,
+  ``BORDER_RUN_FRACTION``); at most ``LOCATE_UNEXPLAINED_PX`` of observed tape near the tip is
   unexplained; and it does not see the end edge-on as a sliver (``THIN_END_PX``), unless
   the model explains that whole view (``SLIVER_STRAY_PX``) and another view locates the
   end without being a sliver. Fewer than two such views: ``hidden``.
@@ -518,48 +519,51 @@ many pixels of the tip edge's projection: the tape leaves the image there and ma
 of view (a wrong "ok" 49 mm off on a fresh shell capture: the tape left all three images at
 the bottom, and the model's last plate, turned along the outline, ended at the border)."""
 BORDER_RUN_FRACTION = 0.5
-"""... unless every stretch of observed tape along the border near the tip edge is shorter than
-this fraction of the tip edge's length in the image: a corner of the end touching the
-border, not the tape crossing it (which takes about its width: 51-77 px against a 59-79 px
+"""... unless the tape on the border near the tip edge (within BORDER_CLEAR_PX plus the tip
+edge's length of it, ignored pixels on the border counted as tape) is shorter than this
+fraction of the tip edge's length in the image: a corner of the end touching the border,
+not the tape crossing it (which takes about its width: 51-77 px against a 59-79 px
 tip edge in that wrong "ok"; a corner touched 1-14 px against 34-61 px in shell-963019, a
 needless "hidden" 0.4-0.7 mm off, before 2026-11-27)."""
 
 
 def _clear_of_border(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray) -> bool:
-    """Is no stretch of observed tape along the image's border within BORDER_CLEAR_PX of the
-    projections of ``points`` (k, 3, the tip edge from one corner to the other) at least
-    BORDER_RUN_FRACTION of the tip edge's length in the image? ``observed``: the view's
-    silhouette crop whose top-left pixel is ``origin``."""
+    """Is the tape clear of the image's border at the tip edge ``points`` (k, 3, from one
+    corner to the other)? Not where observed tape on the border lies within BORDER_CLEAR_PX
+    of the tip edge's projection and the tape on the border within BORDER_CLEAR_PX plus the
+    tip edge's length of it is at least BORDER_RUN_FRACTION of that length: the tape may
+    cross the border there. Ignored pixels on the border count as tape (the tape may lie
+    under them), and the border's sides are counted together (a band crossing an image
+    corner). ``observed``: the view's silhouette crop whose top-left pixel is ``origin``."""
     cam = view.camera
     (h, w), (x0, y0) = observed.shape, origin
     if x0 > 0 and y0 > 0 and x0 + w < cam.width and y0 + h < cam.height:
         return True                       # the crop touches no image border
+    ys, xs = np.nonzero(observed)
+    xs, ys = xs + x0, ys + y0
+    on_border = (xs == 0) | (ys == 0) | (xs == cam.width - 1) | (ys == cam.height - 1)
+    if not on_border.any():
+        return True
+    border = np.column_stack([xs[on_border], ys[on_border]])
     uv = cam.project(points)
     uv = uv[np.all(np.isfinite(uv), axis=1)]
     if not len(uv):
         return False
+
+    def distances(xy: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(xy[:, None, :] - uv[None, :, :], axis=2).min(axis=1)
+
+    d = distances(border)
+    if d.min() > BORDER_CLEAR_PX:
+        return True
+    if view.ignore is not None:
+        # The ignored pixels on the crop's part of the border count towards the length.
+        X, Y = np.meshgrid(np.arange(x0, x0 + w), np.arange(y0, y0 + h))
+        edge = (X == 0) | (Y == 0) | (X == cam.width - 1) | (Y == cam.height - 1)
+        hidden = edge & view.ignore[y0:y0 + h, x0:x0 + w] & (observed == 0)
+        d = np.concatenate([d, distances(np.column_stack([X[hidden], Y[hidden]]))])
     edge_px = float(np.linalg.norm(uv[-1] - uv[0]))
-    # The crop's rows and columns on the image's border, each as (its pixels, their image
-    # coordinates): the stretches of tape along it are its runs of tape pixels.
-    sides = []
-    if y0 == 0:
-        sides.append((observed[0], np.column_stack([x0 + np.arange(w), np.zeros(w)])))
-    if y0 + h == cam.height:
-        sides.append((observed[-1], np.column_stack([x0 + np.arange(w), np.full(w, cam.height - 1)])))
-    if x0 == 0:
-        sides.append((observed[:, 0], np.column_stack([np.zeros(h), y0 + np.arange(h)])))
-    if x0 + w == cam.width:
-        sides.append((observed[:, -1], np.column_stack([np.full(h, cam.width - 1), y0 + np.arange(h)])))
-    for line, xy in sides:
-        tape = np.flatnonzero(line)
-        if not len(tape):
-            continue
-        for run in np.split(tape, np.flatnonzero(np.diff(tape) > 1) + 1):
-            pixels = xy[run]
-            near = np.linalg.norm(pixels[:, None, :] - uv[None, :, :], axis=2).min() <= BORDER_CLEAR_PX
-            if near and len(run) >= BORDER_RUN_FRACTION * edge_px:
-                return False
-    return True
+    return bool(np.count_nonzero(d <= BORDER_CLEAR_PX + edge_px) < BORDER_RUN_FRACTION * edge_px)
 
 
 def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.ndarray,

@@ -528,17 +528,26 @@ measurement of this end: corners "on tape" within PROBE_CORNER_M bound the twist
 
 
 ONE_END_M = 0.008
-"""Touched tips whose corners are tape, with nothing past them, all within this [m] of each
-other are one end to the needle (:func:`one_end`): each was touched within PROBE_CONFIRM_M
-of where it was aimed, so tips up to twice that apart can both be the end it touched (fresh
-961065, 3 cameras: the answer's tip, 1.3 mm off, and an alternative's, 4.5 mm from it, were
-refused as two ends). The closest touched is kept; ends farther apart than this stay
-refused (a tip on the tape's body, 28 mm from the end, was touched closer than the end)."""
+"""Where several touched tips have their corners on tape and nothing PROBE_BEYOND_M past
+them, and every tip touched on the tape lies within this [m] of the others, they are one
+end to the needle (:func:`one_end`; fresh 961065, 3 cameras: the answer's tip, 1.3 mm off,
+and an alternative's, 4.5 mm from it, were refused as two ends). A tip on the tape's body
+is tape too, but with tape PROBE_BEYOND_M past it (6 mm): such tips lie within about that
+of the end, and the one farthest out along the tape is kept (:func:`outermost`). Tips
+farther apart stay refused (a tip on the tape's body, 28 mm from the end, was touched
+closer than the end)."""
 
 
 def one_end(tips: list) -> bool:
     """Do all of ``tips`` [(3,) m] lie within ONE_END_M of each other?"""
     return all(np.linalg.norm(a - b) <= ONE_END_M for i, a in enumerate(tips) for b in tips[i + 1:])
+
+
+def outermost(ends: list) -> int:
+    """The index of the end (tip (3,), frame (3, 3)) of ``ends`` farthest out along their
+    mean trunk direction."""
+    trunk = sum(R[:, 0] for _, R in ends)
+    return int(np.argmax([float(tip @ trunk) for tip, _ in ends]))
 
 
 def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = None, capture: Capture | None = None,
@@ -552,8 +561,9 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     the touched one, None where nothing was touched). A confirmed tip is kept only when both
     its corners are tape too (:func:`tapecell.cell.probe.corners_on_tape`), at its own twist
     or one the corners find (:meth:`_Needle.end_frame`). Where several tips are tape and
-    nothing tells them apart, the one whose corners are tape is kept, or, where several
-    such tips lie within ONE_END_M of each other (one end), the one touched closest.
+    nothing tells them apart, the only one whose corners are tape is kept, or, where every
+    touched tip lies within ONE_END_M of the others (one end), the one farthest out of those
+    whose corners are tape.
     Where none is confirmed:
     - the one touched tip with tape on its trunk's line beyond it is walked past
       (:func:`_walk_past`) to the end;
@@ -617,15 +627,17 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                     best = whole[0]
                     reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip): the "
                               f"only touched tip of {len(on_tape)} whose corners are tape")
-                elif len(whole) > 1 and one_end([hypotheses[j][0] for j in whole]):
-                    # Several such ends, all within ONE_END_M of each other: one end, measured
-                    # twice; the tip touched closest is kept.
-                    k = min(whole, key=lambda j: found[j])
+                elif len(whole) > 1 and one_end([hypotheses[j][0] for j in on_tape]):
+                    # Several such ends, and every touched tip within ONE_END_M of the others:
+                    # one end, measured more than once; the tip farthest out along the tape is
+                    # kept (one on the body behind the end is tape too).
+                    k = outermost([hypotheses[j][:2] for j in whole])
+                    k = whole[k]
                     if needle.trunk_on_tape(hypotheses[k][0], hypotheses[k][1]):
                         best = k
                         reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its "
-                                  f"tip): the closest touched of {len(whole)} tips whose corners are tape, all within "
-                                  f"{1e3 * ONE_END_M:.0f} mm of each other (one end)")
+                                  f"tip): the farthest out of {len(whole)} tips whose corners are tape, every touched "
+                                  f"tip within {1e3 * ONE_END_M:.0f} mm of the others (one end)")
         elif best is not None:
             reason = f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its tip)"
         frame = None

@@ -310,8 +310,8 @@ def test_two_touched_ends_a_few_millimetres_apart_are_one_end():
     """Seed 4: the true end and a "tip" 3 mm back along the same tape, as two hypotheses of
     one shape: both tips are tape with none past them, both have their corners on tape,
     nothing tells where the shapes disagree nor which is clearly closer. They lie within
-    ONE_END_M of each other: one end, and the one touched closest is kept (before, refused).
-    Tips farther apart stay two ends."""
+    ONE_END_M of each other: one end, and the one farther out along the tape is kept (before,
+    refused). Tips farther apart stay two ends."""
     import dataclasses
 
     from tapecell.cell.config import load_cell_config
@@ -319,7 +319,7 @@ def test_two_touched_ends_a_few_millimetres_apart_are_one_end():
     from tapecell.estimator import Alternative, Verdict
     from tapecell.sim.arm import SimArm
     from tapecell.sim.cell import SimCell
-    from tapecell.sim.episode import ONE_END_M, one_end, resolve_by_probing
+    from tapecell.sim.episode import ONE_END_M, one_end, outermost, resolve_by_probing
 
     cfg = load_cell_config()
     with SimCell(cfg, seed=4, n_cameras=2, tool="gripper") as cell:
@@ -333,9 +333,10 @@ def test_two_touched_ends_a_few_millimetres_apart_are_one_end():
         kept, touched = resolve_by_probing(cell, arm, both, cfg.tape.width)
     assert all(d is not None and d < 1e3 * PROBE_CONFIRM_M for d in touched)
     assert kept.verdict is Verdict.OK and "(one end)" in kept.verdict_reason, kept.verdict_reason
-    assert np.linalg.norm(kept.tip_position - truth[:3, 3]) <= 0.0031
+    assert np.allclose(kept.tip_position, truth[:3, 3])       # the one farther out: the end
     assert one_end([np.zeros(3), np.array([ONE_END_M, 0, 0]), np.array([0.5 * ONE_END_M, 0.002, 0])])
     assert not one_end([np.zeros(3), np.array([0.004, 0, 0]), np.array([-0.0045, 0, 0])])
+    assert outermost([(np.array([0.003, 0, 0]), np.eye(3)), (np.array([0.005, 0.001, 0]), np.eye(3))]) == 1
 
 
 def test_an_end_the_model_does_not_explain_is_measured_by_the_needle(capsys):

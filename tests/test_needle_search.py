@@ -221,11 +221,12 @@ def test_hypotheses_ending_at_the_same_point_are_probed_once(monkeypatch):
     assert touched[0] is not None and touched[1] is None
     # Probed as two (and without the rule that tips within ONE_END_M of each other are one
     # end, which would take the one touched closest): refused.
+    one_end_m = E.ONE_END_M
     monkeypatch.setattr(E, "SAME_END_M", 0.0)
     monkeypatch.setattr(E, "ONE_END_M", 0.0)
     kept, touched = E.resolve_by_probing(cell, None, est, WIDTH)
     assert kept.verdict is Verdict.AMBIGUOUS and None not in touched[:2]
-    monkeypatch.setattr(E, "ONE_END_M", 0.008)
+    monkeypatch.setattr(E, "ONE_END_M", one_end_m)
     kept, touched = E.resolve_by_probing(cell, None, est, WIDTH)
     assert kept.verdict is Verdict.OK and "(one end)" in kept.verdict_reason and None not in touched[:2]
 

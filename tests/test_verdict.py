@@ -666,6 +666,14 @@ def test_an_end_where_the_tape_leaves_the_image_is_not_located():
     assert _clear_of_border(view, corner, (80, 120), near)
     corner[75:, 10:21] = 1           # 11 px: more than half the tip edge, the tape may go on
     assert not _clear_of_border(view, corner, (80, 120), near)
+    # A band crossing the border with its border row cut by ignored pixels (8 + 9 px, each
+    # stretch shorter than half the tip edge): counted whole, it crosses.
+    split = np.zeros((80, 40), np.uint8)
+    split[:, 10:28] = 1
+    ignore = np.zeros((200, 200), bool)
+    ignore[199, 98] = True
+    split[79, 18] = 0
+    assert not _clear_of_border(View(cam, np.zeros((200, 200), bool), ignore), split, (80, 120), near)
 
 
 def test_a_garbage_view_is_refused_without_a_second_look(monkeypatch):
