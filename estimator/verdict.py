@@ -539,31 +539,25 @@ def _clear_of_border(view: View, observed: np.ndarray, origin: tuple[int, int], 
     (h, w), (x0, y0) = observed.shape, origin
     if x0 > 0 and y0 > 0 and x0 + w < cam.width and y0 + h < cam.height:
         return True                       # the crop touches no image border
-    ys, xs = np.nonzero(observed)
-    xs, ys = xs + x0, ys + y0
-    on_border = (xs == 0) | (ys == 0) | (xs == cam.width - 1) | (ys == cam.height - 1)
-    if not on_border.any():
+    # The crop's pixels on the image's border (image coordinates, each once).
+    xs, ys = np.arange(x0, x0 + w), np.arange(y0, y0 + h)
+    sides = [np.column_stack([xs, np.full(w, y)]) for y in (0, cam.height - 1) if y0 <= y < y0 + h]
+    sides += [np.column_stack([np.full(h, x), ys]) for x in (0, cam.width - 1) if x0 <= x < x0 + w]
+    pixels = np.unique(np.vstack(sides), axis=0)
+    tape = observed[pixels[:, 1] - y0, pixels[:, 0] - x0] > 0
+    if not tape.any():
         return True
-    border = np.column_stack([xs[on_border], ys[on_border]])
     uv = cam.project(points)
     uv = uv[np.all(np.isfinite(uv), axis=1)]
     if not len(uv):
         return False
-
-    def distances(xy: np.ndarray) -> np.ndarray:
-        return np.linalg.norm(xy[:, None, :] - uv[None, :, :], axis=2).min(axis=1)
-
-    d = distances(border)
-    if d.min() > BORDER_CLEAR_PX:
+    d = np.linalg.norm(pixels[:, None, :] - uv[None, :, :], axis=2).min(axis=1)
+    if d[tape].min() > BORDER_CLEAR_PX:
         return True
-    if view.ignore is not None:
-        # The ignored pixels on the crop's part of the border count towards the length.
-        X, Y = np.meshgrid(np.arange(x0, x0 + w), np.arange(y0, y0 + h))
-        edge = (X == 0) | (Y == 0) | (X == cam.width - 1) | (Y == cam.height - 1)
-        hidden = edge & view.ignore[y0:y0 + h, x0:x0 + w] & (observed == 0)
-        d = np.concatenate([d, distances(np.column_stack([X[hidden], Y[hidden]]))])
+    # The length counts ignored pixels on the border as tape.
+    counted = tape | view.ignore[pixels[:, 1], pixels[:, 0]] if view.ignore is not None else tape
     edge_px = float(np.linalg.norm(uv[-1] - uv[0]))
-    return bool(np.count_nonzero(d <= BORDER_CLEAR_PX + edge_px) < BORDER_RUN_FRACTION * edge_px)
+    return bool(np.count_nonzero(counted & (d <= BORDER_CLEAR_PX + edge_px)) < BORDER_RUN_FRACTION * edge_px)
 
 
 def _continuation_visible(view: View, boxes: Sequence[Box], tip_position: np.ndarray,

@@ -631,8 +631,7 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
                     # Several such ends, and every touched tip within ONE_END_M of the others:
                     # one end, measured more than once; the tip farthest out along the tape is
                     # kept (one on the body behind the end is tape too).
-                    k = outermost([hypotheses[j][:2] for j in whole])
-                    k = whole[k]
+                    k = whole[outermost([hypotheses[j][:2] for j in whole])]
                     if needle.trunk_on_tape(hypotheses[k][0], hypotheses[k][1]):
                         best = k
                         reason = (f"hypothesis {best} confirmed by the needle ({1e3 * found[best]:.1f} mm from its "
@@ -674,15 +673,18 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
             # only where the ends traced agree (one end): a trace decides nothing between
             # hypotheses the needle could not tell apart, and never where several tips lie
             # on the tape (a fold's edge is tape as the true end is).
-            traced = []
+            first = None
             for k in range(len(hypotheses)):
                 t = _traced(needle, est, k, capture, width)
-                if t is not None and traced and np.linalg.norm(t.tip_position - traced[0].tip_position) > PROBE_CONFIRM_M:
-                    traced = []      # two ends: no further trace can make them one
+                if t is None:
+                    continue
+                if first is None:
+                    first = t
+                elif np.linalg.norm(t.tip_position - first.tip_position) > PROBE_CONFIRM_M:
+                    first = None     # two ends: no further trace can make them one
                     break
-                traced += [t] if t is not None else []
-            if traced:
-                return traced[0], report
+            if first is not None:
+                return first, report
     if best is None:
         return est, report
     out = adopt(est, best, est_spec(cell), reason)
