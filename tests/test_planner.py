@@ -142,9 +142,11 @@ def test_refuses_outside_the_workspace():
 
 def test_refuses_an_approach_through_the_part():
     # Tip lying flat just above the part's top, face up: the lower finger of any jaw that
-    # closes across it (along the normal, world z) dips into the keep-out box.
+    # closes across it (along the normal, world z) dips into the keep-out box. (The tip
+    # 50 mm in from the part's +x edge: the grasp points furthest back, 83 mm along the
+    # trunk, are over the part too.)
     rotation = np.column_stack([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    tip = TipFrame(np.array([0.0, 0.50, 0.115]), rotation, 0.02)
+    tip = TipFrame(np.array([0.05, 0.50, 0.115]), rotation, 0.02)
     with pytest.raises(PlanRefused) as e:
         plan_grasp(tip, PARAMS, GRIPPER, LIMITS)
     assert e.value.reason == "collision" and "keep-out" in str(e.value)
@@ -155,9 +157,9 @@ def test_refuses_an_approach_through_the_part():
 def test_refuses_when_the_fingers_would_hit_the_tape():
     # A tape curled back on itself: a layer lies right where the open jaw comes in.
     tip, nodes = tape(np.zeros(15))
-    # A sheet 20.5 mm off the tape's face all around the tip: where a finger slides in,
-    # whichever way the jaw comes.
-    a, b = np.meshgrid(np.linspace(-0.06, 0.06, 25), np.linspace(-0.06, 0.06, 25))
+    # A sheet 20.5 mm off the tape's face all around the tip, and back past the furthest
+    # grasp point (83 mm in): where a finger slides in, whichever way the jaw comes.
+    a, b = np.meshgrid(np.linspace(-0.11, 0.06, 35), np.linspace(-0.06, 0.06, 25))
     w = tip.rotation[:, 1]
     sheet = (tip.position + a.reshape(-1, 1) * tip.trunk + b.reshape(-1, 1) * w + 0.0205 * tip.normal)
     with pytest.raises(PlanRefused) as e:
@@ -219,12 +221,13 @@ def test_plan_to_json_and_describe():
     assert "grasp" in plan.describe() and "close_gripper" in plan.describe()
 
 
-def test_a_low_hanging_tip_is_reached_where_the_gripper_clears_the_table_and_the_part():
+def test_a_low_hanging_tip_is_reached_where_the_gripper_clears_the_table_and_the_part(monkeypatch):
     # The tape runs 90 mm out over the part's side and hangs straight down to 41 mm above
     # the table: the old flat floor (every check point above z 0.05) refused every approach;
     # the collision check of the gripper's and the wrist's shapes against the table and the
     # part, with the cell file's 5 mm clearance, finds one (from the side, pitched, through
     # a pose above the pre-grasp).
+    from tapecell.cell import planner
     from tapecell.cell.config import load_cell_config
 
     limits = SafetyLimits.from_cell(load_cell_config())
@@ -239,9 +242,13 @@ def test_a_low_hanging_tip_is_reached_where_the_gripper_clears_the_table_and_the
     angles[3, 1] = -np.radians(80.0)                # hanging 10 deg outwards: 40 mm from the face
     tip, nodes = tape(angles)
     assert tip.position[2] == pytest.approx(0.0414, abs=1e-3) and tip.trunk[2] < -0.98
-    with pytest.raises(PlanRefused):
+    with monkeypatch.context() as m, pytest.raises(PlanRefused):
+        # The flat floor refuses the grasp points near the end (up to 40 mm in; further
+        # back, 50 mm and more, the tape runs level 90 mm above the table).
+        m.setattr(planner, "EXTRA_INSETS_M", tuple(d for d in planner.EXTRA_INSETS_M if d <= 0.040 + 1e-9))
         plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, q_start=REFERENCE_JOINTS)
     plan = plan_grasp(tip, PARAMS, GRIPPER, limits, tape_points=nodes, q_start=REFERENCE_JOINTS)
+    assert plan.inset <= PARAMS.inset + 0.040 + 1e-9
     _assert_waypoints_clear(plan, GRIPPER.shape(), limits)
     assert plan.steps[1] == Step("move_joints", "above") and plan.steps[2] == Step("move_joints", "pregrasp")
     # Executed on the fake arm through the same checks.
@@ -434,9 +441,9 @@ def test_the_open_fingers_keep_a_margin_from_the_tape_on_the_approach(monkeypatc
     import tapecell.cell.planner as planner
 
     tip, nodes = tape(np.zeros(15))
-    # A sheet 30 mm either side of the tip, 70 mm back along the trunk (every tilt and
-    # pitch of the jaw, at every inset, meets it).
-    a, b = np.meshgrid(np.linspace(-0.07, 0.03, 41), np.linspace(-0.03, 0.03, 25))
+    # A sheet 30 mm either side of the tip, 110 mm back along the trunk (every tilt and
+    # pitch of the jaw, at every inset up to 83 mm, meets it).
+    a, b = np.meshgrid(np.linspace(-0.11, 0.03, 57), np.linspace(-0.03, 0.03, 25))
     w = tip.rotation[:, 1]
 
     def sheet(offset):
@@ -491,3 +498,41 @@ def test_straight_moves_are_planned_with_a_margin_over_the_clearance(monkeypatch
     tip, nodes = next(random_tapes(1))
     plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes)
     assert seen and all(c == pytest.approx(LIMITS.clearance + planner.PLAN_MARGIN_M) for c in seen)
+
+
+def test_an_end_hanging_out_from_the_part_is_taken_far_back_where_nearer_grasps_collide(monkeypatch):
+    # The estimate of fresh seed 968000 (3 cameras): the end curls over the part's +x edge
+    # and hangs 30 mm outside its face, pointing out and down. Every one of the 288 approach
+    # variants up to 40 mm in from the tip put the palm at the table or a finger within the
+    # clearance of the part; 58 mm in, higher up where the tape comes over the edge, the jaw
+    # takes it from the side (the episode grasped there, the tape following the lift).
+    from tapecell.cell import planner
+    from tapecell.cell.config import load_cell_config
+    from tapecell.cell.planner import estimated_surface
+
+    cfg = load_cell_config()
+    limits = SafetyLimits.from_cell(cfg)
+    gripper = GripperGeometry.from_config(cfg.tools.gripper)
+    angles = np.radians([[-1.91, -2.01, -0.07], [-0.8, -46.25, -0.09], [-3.29, -73.2, 1.13],
+                         [-0.86, -13.71, 0.08], [-0.9, -2.04, 0.2]])
+    R = np.array([[0.667, -0.0086, -0.745], [-0.0613, -0.9972, -0.0433], [-0.7425, 0.0745, -0.6657]])
+    u, _, vt = np.linalg.svd(R)
+    tip = TipFrame(np.array([0.0904, 0.4944, 0.0916]), u @ vt, 0.066)
+    nodes = forward_kinematics(SPEC, angles).nodes
+    kw = dict(tape_points=nodes, tape_surface=estimated_surface(SPEC, angles),
+              q_start=np.array([-0.5, -2.0, 2.3, -1.9, -np.pi / 2, 0.0]))
+    with monkeypatch.context() as m:          # the grasp points up to 40 mm in: refused
+        m.setattr(planner, "EXTRA_INSETS_M", tuple(d for d in planner.EXTRA_INSETS_M if d <= 0.040 + 1e-9))
+        with pytest.raises(PlanRefused) as e:
+            plan_grasp(tip, PARAMS, gripper, limits, **kw)
+        assert e.value.reason == "collision" and "table" in str(e.value)
+    plan = plan_grasp(tip, PARAMS, gripper, limits, **kw)
+    assert plan.inset > PARAMS.inset + 0.040
+    assert SIDE_TILT_MIN_DEG <= abs(np.degrees(plan.approach_tilt_rad)) <= SIDE_TILT_MAX_DEG
+    grasp = plan.waypoint("grasp").world_from_tcp
+    assert _distance_to_polyline(grasp[:3, 3], nodes) < 1e-9   # on the estimated centre line
+    assert grasp[2, 3] > 0.1                                    # above the part's top (z 0.1 m)
+    _assert_waypoints_clear(plan, gripper.shape(), limits)
+
+
+SIDE_TILT_MIN_DEG, SIDE_TILT_MAX_DEG = 90.0 - 1e-6, 120.0 + 1e-6
