@@ -445,10 +445,11 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     folded = ok and (float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
                      or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG)))
     seen_end_on = ok and any(end_on(v, tip_position, tip_rotation) for v in capture.views)
+    rough = ok and (combine(view_costs) > config.recheck_cost or float(np.max(offsets)) > config.recheck_offset_px)
     # An "ok" whose views only the strip explains (verdict.explaining_offsets) was a poor fit
     # of the plate chain: it gets the look a poor fit gets.
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN) or (ok and by_strip)
-    if method == "default" and second_look and not thorough and (folded or seen_end_on or unsure):
+    if method == "default" and second_look and not thorough and (folded or seen_end_on or unsure or rough):
         # An "ok" estimate (a fold, an end seen end-on) gets a smaller thorough beam
         # (FitConfig.fold_beam).
         look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok and not by_strip else config
