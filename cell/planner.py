@@ -350,6 +350,8 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     tilts (:data:`BODY_SIDE_TILTS_RAD`); then the same at the insets of
     :data:`EXTRA_INSETS_M` (the grasp point further back along the estimated end), from
     :data:`FAR_INSET_M` on only from the side. The first that passes every check is the plan.
+    Grasp points are tried only where the tape is known: short of the base of
+    ``tape_points``; without them, no further in than the cell file's inset.
     """
     if tip.verdict != "ok":
         # A robot acts only on an estimate the estimator vouches for (estimator/verdict.py).
@@ -368,6 +370,14 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     primary = 0        # how many refusals are of the first set (the cell file's inset, up to the side)
     if insets is None:
         insets = grasp_insets(params)
+    # Grasp points only where the tape is known: without a centre line, along the tip's own
+    # trunk up to the cell file's inset (further back along the trunk would be a guess);
+    # with one, short of its base (beyond it grasp_frame stops at the base, on the part).
+    reach = float(params.inset) if tape_points is None else _line_length(tip, tape_points)
+    insets = [i for i in insets if i <= reach + 1e-9]
+    if not insets:
+        raise PlanRefused("unreachable", f"no grasp point: the estimated tape is {_mm_len(reach)} long, the "
+                          f"cell file's inset {_mm_len(params.inset)}")
     for inset in insets:
         grasp_position, grasp_rotation = grasp_frame(tip, inset, params.inset, tape_points)
         for tilts in (APPROACH_TILTS_RAD, BODY_SIDE_TILTS_RAD):
@@ -447,6 +457,18 @@ def grasp_frame(tip: TipFrame, inset: float, straight: float, tape_points: Any =
     s, c = float(np.linalg.norm(axis)), float(tip.trunk @ trunk)
     turn = _axis_angle(axis / s, np.arctan2(s, c)) if s > 1e-9 else np.eye(3)
     return position, turn @ R_tip
+
+
+def _line_length(tip: TipFrame, tape_points: Any) -> float:
+    """Length [m] of the estimated centre line :func:`grasp_frame` walks: from the tip back
+    through ``tape_points`` (base first, ending at the tip's plate) to the base."""
+    pts = np.asarray(tape_points, float)
+    line = np.vstack([np.asarray(tip.position, float)[None], pts[-2::-1]])
+    return float(np.linalg.norm(np.diff(line, axis=0), axis=1).sum())
+
+
+def _mm_len(x: float) -> str:
+    return f"{1e3 * float(x):.0f} mm"
 
 
 def tape_surface_points(nodes: Any, frames: Any, width: float, step: float = 0.002) -> np.ndarray:

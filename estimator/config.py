@@ -123,18 +123,17 @@ class FitConfig:
     time's p95 by 5 %, its mean by 4 %; 8 turned a right "ok" into ambiguous. (16 for every
     second look cut the p95 by 13 %, but on fresh seeds 810000- missed the better shape
     that made two refused fits "ok" at 0.2 mm.)"""
-    recheck_cost: float = float("inf")
-    """An "ok" estimate whose eq.-11 cost is still above this after the first look (and its
-    wide search) gets the second look an "ok" fold gets (``fold_beam``); off (inf): 0.15,
-    tried on 2026-11-27, sent 18 % of the "ok" estimates of 413 tuning captures (964000-)
-    to it, for the one answer ``recheck_offset_px`` corrects alone."""
     recheck_offset_px: float = 1.3
-    """... or one of whose views' mean boundary distance is still above this [px] (the wide
-    search's ``wide_offset_px`` is 1.5): calib-964050 (2 px of calibration error, a bench
+    """An "ok" estimate one of whose views' mean boundary distance is above this [px] after
+    the first look (and its wide search, if ``wide_*`` asked for one) gets the second look an
+    "ok" fold gets (``fold_beam``): calib-964050 (2 px of calibration error, a bench
     capture) was "ok" 7.5 mm off at 1.38 px, its cost (0.18) more than twice the true
     shape's; the second look found a shape 1.4 mm off at 0.55 px. On the 824 tuning
     captures of 963000- and 964000- 1.3 px sent 48 "ok" estimates (6 %) to the second look,
-    and changed that one answer alone."""
+    and changed that one answer alone. (A trigger on the eq.-11 cost, above 0.15, sent 18 %
+    of the "ok" estimates of 964000- to the look for that same answer: not kept.) Fresh
+    970000- (noisy, calib, calib_rot): 9 of 169 "ok" estimates got the look, no answer
+    changed."""
     wide_variants: bool = True
     """The wide search also refines the winner's other branches (mirrored bends, flipped or
     quarter-turned twists)."""

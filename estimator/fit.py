@@ -369,8 +369,9 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     silhouette cost (eq. 11) of that iterate; for the default method after the fit (the
     winner's iterations, costed once the clock has stopped), for the paper's method live
     (the objective of the node being optimised).
-    second_look: an unsure estimate (and an "ok" fold) gets a second, thorough look before
-    the answer (below); False answers from the first look.
+    second_look: an unsure estimate (and an "ok" fold, an end seen end-on, a view still
+    explained only roughly) gets a second, thorough look before the answer (below); False
+    answers from the first look.
     Returns an :class:`Estimate`; ``time_s`` is the fitting time alone.
     """
     if method not in ("default", "paper"):
@@ -438,19 +439,21 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     # before answering, for an unsure estimate, for an "ok" fold, over the whole tape or at
     # its end (its alternatives, the shapes folded the other way, are weighed afresh), and
     # for an "ok" end that a camera sees end-on (END_ON_DEG: its depth along that line is
-    # less constrained). For a fold its answer stands; for the others when it is "ok"
+    # less constrained), and for an "ok" one of whose views is still explained only to more
+    # than FitConfig.recheck_offset_px (the search may have stopped on a wrong branch that
+    # a calibration error or noise lets pass). For a fold its answer stands; for the others when it is "ok"
     # (judged afresh) or explains the views better (:func:`_second_look`). The time of both
     # looks counts. What the looks compute alike (:class:`FirstStage`) is done once.
     ok = verdict is Verdict.OK
     folded = ok and (float(shape.frames[0][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(FOLD_DEG))
                      or float(shape.frames[-2][:, 0] @ tip_rotation[:, 0]) < np.cos(np.radians(END_FOLD_DEG)))
     seen_end_on = ok and any(end_on(v, tip_position, tip_rotation) for v in capture.views)
-    rough = ok and (combine(view_costs) > config.recheck_cost or float(np.max(offsets)) > config.recheck_offset_px)
+    rough = ok and not bool(np.all(np.asarray(offsets, float) <= config.recheck_offset_px))
     # An "ok" whose views only the strip explains (verdict.explaining_offsets) was a poor fit
     # of the plate chain: it gets the look a poor fit gets.
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN) or (ok and by_strip)
     if method == "default" and second_look and not thorough and (folded or seen_end_on or unsure or rough):
-        # An "ok" estimate (a fold, an end seen end-on) gets a smaller thorough beam
+        # An "ok" estimate (a fold, an end seen end-on, a rough view) gets a smaller thorough beam
         # (FitConfig.fold_beam).
         look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok and not by_strip else config
         if verdict is not Verdict.HIDDEN:

@@ -142,11 +142,11 @@ def test_refuses_outside_the_workspace():
 
 def test_refuses_an_approach_through_the_part():
     # Tip lying flat just above the part's top, face up: the lower finger of any jaw that
-    # closes across it (along the normal, world z) dips into the keep-out box. (The tip
-    # 50 mm in from the part's +x edge: the grasp points furthest back, 83 mm along the
-    # trunk, are over the part too.)
+    # closes across it (along the normal, world z) dips into the keep-out box. (No centre
+    # line given: only the cell file's inset is tried, along the tip's trunk; 83 mm back
+    # along it would be past the part's edge, in the air, where no tape is known.)
     rotation = np.column_stack([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
-    tip = TipFrame(np.array([0.05, 0.50, 0.115]), rotation, 0.02)
+    tip = TipFrame(np.array([0.0, 0.50, 0.115]), rotation, 0.02)
     with pytest.raises(PlanRefused) as e:
         plan_grasp(tip, PARAMS, GRIPPER, LIMITS)
     assert e.value.reason == "collision" and "keep-out" in str(e.value)
@@ -158,8 +158,11 @@ def test_refuses_when_the_fingers_would_hit_the_tape():
     # A tape curled back on itself: a layer lies right where the open jaw comes in.
     tip, nodes = tape(np.zeros(15))
     # A sheet 20.5 mm off the tape's face all around the tip, and back past the furthest
-    # grasp point (83 mm in): where a finger slides in, whichever way the jaw comes.
-    a, b = np.meshgrid(np.linspace(-0.11, 0.06, 35), np.linspace(-0.06, 0.06, 25))
+    # grasp point: where a finger slides in, whichever way the jaw comes.
+    from tapecell.cell import planner
+
+    far = PARAMS.inset + max(planner.EXTRA_INSETS_M) + 0.03
+    a, b = np.meshgrid(np.linspace(-far, 0.06, 35), np.linspace(-0.06, 0.06, 25))
     w = tip.rotation[:, 1]
     sheet = (tip.position + a.reshape(-1, 1) * tip.trunk + b.reshape(-1, 1) * w + 0.0205 * tip.normal)
     with pytest.raises(PlanRefused) as e:
@@ -441,9 +444,10 @@ def test_the_open_fingers_keep_a_margin_from_the_tape_on_the_approach(monkeypatc
     import tapecell.cell.planner as planner
 
     tip, nodes = tape(np.zeros(15))
-    # A sheet 30 mm either side of the tip, 110 mm back along the trunk (every tilt and
-    # pitch of the jaw, at every inset up to 83 mm, meets it).
-    a, b = np.meshgrid(np.linspace(-0.11, 0.03, 57), np.linspace(-0.03, 0.03, 25))
+    # A sheet 30 mm either side of the tip, 30 mm past the furthest grasp point back along
+    # the trunk (every tilt and pitch of the jaw, at every inset, meets it).
+    far = PARAMS.inset + max(planner.EXTRA_INSETS_M) + 0.03
+    a, b = np.meshgrid(np.linspace(-far, 0.03, 57), np.linspace(-0.03, 0.03, 25))
     w = tip.rotation[:, 1]
 
     def sheet(offset):
@@ -528,11 +532,43 @@ def test_an_end_hanging_out_from_the_part_is_taken_far_back_where_nearer_grasps_
         assert e.value.reason == "collision" and "table" in str(e.value)
     plan = plan_grasp(tip, PARAMS, gripper, limits, **kw)
     assert plan.inset > PARAMS.inset + 0.040
-    assert SIDE_TILT_MIN_DEG <= abs(np.degrees(plan.approach_tilt_rad)) <= SIDE_TILT_MAX_DEG
+    assert planner.SIDE_TILT_MIN_RAD - 1e-9 <= abs(plan.approach_tilt_rad) <= planner.SIDE_TILT_MAX_RAD + 1e-9
     grasp = plan.waypoint("grasp").world_from_tcp
     assert _distance_to_polyline(grasp[:3, 3], nodes) < 1e-9   # on the estimated centre line
     assert grasp[2, 3] > 0.1                                    # above the part's top (z 0.1 m)
     _assert_waypoints_clear(plan, gripper.shape(), limits)
 
 
-SIDE_TILT_MIN_DEG, SIDE_TILT_MAX_DEG = 90.0 - 1e-6, 120.0 + 1e-6
+
+def test_grasp_points_are_tried_only_where_the_tape_is_known(monkeypatch):
+    """With a centre line, no grasp point past its base (grasp_frame would stop at the base,
+    on the part, and report the inset it was asked for); without one, none further in than
+    the cell file's inset (further back along the tip's trunk is a guess)."""
+    from tapecell.cell import planner
+
+    tried = []
+    real = planner.grasp_frame
+
+    def spy(tip, inset, straight, tape_points=None):
+        tried.append(inset)
+        return real(tip, inset, straight, tape_points)
+    monkeypatch.setattr(planner, "grasp_frame", spy)
+    monkeypatch.setattr(planner, "_plan_variant", lambda *a, **k: (_ for _ in ()).throw(
+        PlanRefused("collision", "every variant refused (test)")))
+    short = TapeSpec(np.full(2, 0.03), 0.03, BASE, BASE_ROTATION)      # a 60 mm tape
+    shape = forward_kinematics(short, np.zeros((2, 3)))
+    tip = TipFrame(shape.nodes[-1], shape.frames[-1], 0.02)
+    with pytest.raises(PlanRefused):
+        plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=shape.nodes)
+    assert tried and max(tried) <= 0.060 + 1e-9
+    assert sorted(set(tried)) == [i for i in planner.grasp_insets(PARAMS) if i <= 0.060]
+    tried.clear()
+    with pytest.raises(PlanRefused):
+        plan_grasp(tip, PARAMS, GRIPPER, LIMITS)
+    assert set(tried) == {PARAMS.inset}
+    tried.clear()
+    with pytest.raises(PlanRefused, match="unreachable.*5 mm long"):
+        tiny = TapeSpec(np.full(1, 0.005), 0.03, BASE, BASE_ROTATION)
+        s5 = forward_kinematics(tiny, np.zeros((1, 3)))
+        plan_grasp(TipFrame(s5.nodes[-1], s5.frames[-1], 0.02), PARAMS, GRIPPER, LIMITS, tape_points=s5.nodes)
+    assert not tried
