@@ -1100,17 +1100,38 @@ def run_episode_safely(seed: int, cameras: int, recording: Path | None, config: 
     try:
         return run_episode(seed, cameras, recording, config, randomize)
     except TapecellError as e:
-        return _failed(seed, cameras, "error", str(e))
+        return _failed(seed, cameras, "error", str(e), _drawn(seed, config, randomize))
     except Exception as e:  # a bug must not lose the other episodes; the reason keeps the trace
-        return _failed(seed, cameras, "crash", f"{type(e).__name__}: {e} | {traceback.format_exc(limit=3)}")
+        return _failed(seed, cameras, "crash", f"{type(e).__name__}: {e} | {traceback.format_exc(limit=3)}",
+                       _drawn(seed, config, randomize))
 
 
-def _failed(seed: int, cameras: int, reason: str, detail: str) -> dict[str, Any]:
+def _drawn(seed: int, config: Any, randomize: Any) -> dict[str, Any] | None:
+    """The domain randomisation values :func:`run_episode` drew for ``seed`` (they depend on
+    the seed alone), for the record of an episode that ended in an error; None where there
+    are none or they cannot be drawn (the error may be the cell file's)."""
+    try:
+        from tapecell.cell.config import CellConfig, load_cell_config
+        from .randomize import Randomize
+
+        cfg = config if isinstance(config, CellConfig) else load_cell_config(config)
+        if randomize is None:
+            randomize = Randomize.from_table(cfg.randomize, f"{cfg.source}: [randomize]")
+        return randomize.draw(seed) or None
+    except Exception:
+        return None
+
+
+def _failed(seed: int, cameras: int, reason: str, detail: str, drawn: dict[str, Any] | None = None) -> dict[str, Any]:
     """An episode that ended in an error: counted as failed (whether the arm had acted is
-    not known)."""
-    return {"format": "tape-episode/1", "seed": int(seed), "cameras": int(cameras), "success": False,
-            "outcome": "failed", "verdict": None, "failure": reason, "detail": detail, "tip_error_mm": None,
-            "normal_error_deg": None, "time_s": {}}
+    not known). ``drawn``: the domain randomisation values of the seed, recorded as a
+    finished episode records them."""
+    doc = {"format": "tape-episode/1", "seed": int(seed), "cameras": int((drawn or {}).get("cameras", cameras)),
+           "success": False, "outcome": "failed", "verdict": None, "failure": reason, "detail": detail,
+           "tip_error_mm": None, "normal_error_deg": None, "time_s": {}}
+    if drawn:
+        doc["randomize"] = drawn
+    return doc
 
 
 failed_episode = _failed

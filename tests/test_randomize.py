@@ -100,3 +100,22 @@ def test_episode_records_what_it_drew(capsys):
     expected = Randomize.from_table({"light_intensity": [0.4, 0.8], "calib_rot_deg": 0.1}).draw(4)
     assert doc["randomize"] == expected and doc["seed"] == 4
     assert code == (0 if doc["success"] else 1)
+
+
+def test_an_episode_that_ends_in_an_error_records_what_it_drew(monkeypatch):
+    """A campaign's episode that ends in an error (here: no tape shape the cameras see
+    whole, as for a tape drawn too long) still says which values its seed drew, so the
+    setting that broke it can be found and the episode re-run alone."""
+    from tapecell.estimator.errors import TapecellError
+    from tapecell.sim import episode
+
+    def no_shape(seed, *a, **k):
+        raise TapecellError(f"no 'twist' tape shape for seed {seed} fits the cameras' view")
+    monkeypatch.setattr(episode, "run_episode", no_shape)
+    r = Randomize.from_table({"tape_length_mm": [200, 250], "cameras": [2, 3]})
+    assert r.draw(7)["cameras"] == 2
+    doc = episode.run_episode_safely(7, 3, None, None, r)   # the drawn camera count stands
+    assert doc["outcome"] == "failed" and doc["failure"] == "error" and "seed 7" in doc["detail"]
+    assert doc["randomize"] == r.draw(7) and doc["cameras"] == r.draw(7)["cameras"]
+    plain = episode.run_episode_safely(7, 3, None, None, Randomize.from_table({}))
+    assert "randomize" not in plain and plain["cameras"] == 3
