@@ -88,9 +88,10 @@ BODY_SIDE_TILTS_RAD = tuple(np.radians(a) for a in (120.0, -120.0, 150.0, -150.0
 # within the clearance (8 of 9 such simulated episodes grasped, the tip following the
 # lift within 0.3-6.1 mm of the 8 allowed). 50, 60 and 75 mm (2026-11-27): ends hanging
 # beside the part's face or low over the table, where every grasp up to 40 mm in put the
-# palm, the mount or a finger within the clearance of the table or the part; 17 such refused
-# simulated episodes of earlier sessions' ranges (930055-968045), re-run, all grasped, 12 at
-# 58 mm, one at 68 mm and 4 at 83 mm in, none failed.
+# palm, the mount or a finger within the clearance of the table or the part: of 17
+# simulated episodes of earlier sessions' ranges (45, 930055-968045) once refused for that,
+# re-run, 15 grasped here (9 at 58 mm in, one at 68 mm, 5 at 83 mm), none failed; 941160
+# grasps 38 mm in without them, 958102 stays refused (no tape beside its grasp point).
 EXTRA_INSETS_M = (0.006, 0.012, 0.017, 0.022, 0.030, 0.040, 0.050, 0.060, 0.075)
 FAR_INSET_M = 0.020
 SIDE_TILT_MIN_RAD, SIDE_TILT_MAX_RAD = np.radians(90.0), np.radians(120.0)
