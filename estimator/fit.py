@@ -53,11 +53,11 @@ from .geometry import Camera
 from .refine import curls, hooks, hypotheses, mirrors, refine, variants
 from .result import Alternative, CostHistory, Estimate, Verdict
 from .search import beam_search
-from .silhouette import CostEvaluator, combine, make_target, project_quads
+from .silhouette import CostEvaluator, combine, make_target, project_quads, render
 from .strip import strip_stage
 from .tape import forward_kinematics
-from .verdict import (DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess, edgewise_bend,
-                      end_on, is_close_alternative, mask_fault, rival_reason, view_offsets)
+from .verdict import (BASE_OFFSET_PX, DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess,
+                      base_offsets, edgewise_bend, end_on, is_close_alternative, mask_fault, rival_reason, view_offsets)
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -268,6 +268,17 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
                [(a.cost, a.tip_position) for a in near],
                None if strip_shape is None else lambda: _offsets(capture, strip_shape.quads()))
     verdict, reason = j.verdict, j.reason
+    if verdict is Verdict.OK:
+        # The base is fixed: the model must meet the observed tape there in every view.
+        quads = shape.quads()
+        full = [render(project_quads(t.camera, quads), t.shape, t.x0, t.y0) for t in targets]
+        base = base_offsets(capture.views, capture.tape.base_position, [t.observed for t in targets], models, full,
+                            [(t.x0, t.y0) for t in targets])
+        worst = int(np.argmax(base))
+        if base[worst] > BASE_OFFSET_PX:
+            verdict, reason = Verdict.POOR_FIT, (f"view {worst} does not meet the tape at its base: mean boundary "
+                                                 f"distance {base[worst]:.1f} px there > {BASE_OFFSET_PX:g} px (is "
+                                                 f"the camera's calibration off?)")
     if verdict is Verdict.OK:
         bend, joint = edgewise_bend(shape.frames)
         if bend > EDGEWISE_MAX_DEG:

@@ -282,6 +282,53 @@ def end_points(tip_position: np.ndarray, tip_rotation: np.ndarray, width: float)
     return np.vstack([line, tip_position + half, tip_position - half])
 
 
+BASE_OFFSET_PX = 3.5
+"""An "ok" estimate is a ``poor_fit`` where, in a view, the observed tape around the tape's
+base (where it is stuck, known from the cell file) lies more than this [px] mean boundary
+distance from the model's: the base cannot move, so a misfit there is the camera's
+calibration (or the cell file's base) being off, and the fitted shape bends to make up for
+it elsewhere. On 2026-11-27, simulated captures (975000-975019, 2 and 3 cameras) with every
+camera turned by 0.5 deg (`calib_rot_deg`) showed 4.3-11.1 px in their worst view, and 12 of
+them were "ok" up to 12.1 mm off (3 of 29 "ok" grasps of a sweep were 11-14 mm off); with the
+true cameras the worst view showed 1.7 px; synthetic captures of every kind (964000-)
+at most 3.4 px among "ok" (part, where the box hides the base)."""
+BASE_WINDOW_PX = 40
+"""... measured within this radius [px] of the base's projection ..."""
+BASE_OCCLUDED_PX = 12
+"""... not within this [px] of where a scene box (or an ignore mask) hides the model (the
+outline there is the occluder's: a synthetic part capture's coarse occlusion showed 8 px) ..."""
+BASE_MIN_OUTLINE_PX = 10
+"""... and only where at least this many outline pixels of the observed tape remain."""
+
+
+def base_offsets(views: Sequence[View], base_position: np.ndarray, observed: Sequence[np.ndarray],
+                 models: Sequence[np.ndarray], unoccluded: Sequence[np.ndarray],
+                 origins: Sequence[tuple[int, int]]) -> np.ndarray:
+    """(views,) mean boundary distance [px] between the observed silhouette and the model's
+    around the tape's base (BASE_WINDOW_PX), where no occluder hides the model (``models``:
+    the model as seen, ``unoccluded``: as if no box or ignore mask hid it; uint8 0/1 crops
+    at ``origins``, as :func:`assess` takes them); 0 for a view with too little outline
+    there (BASE_MIN_OUTLINE_PX)."""
+    out = np.zeros(len(views))
+    k3 = np.ones((3, 3), np.uint8)
+    kb = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * BASE_OCCLUDED_PX + 1, 2 * BASE_OCCLUDED_PX + 1))
+    for k, (v, o, m, full, (x0, y0)) in enumerate(zip(views, observed, models, unoccluded, origins)):
+        u, w = v.camera.project(np.asarray(base_position, float)[None])[0] - (x0, y0)
+        if not (np.isfinite(u) and np.isfinite(w)):
+            continue
+        h, wd = o.shape
+        yy, xx = np.ogrid[0:h, 0:wd]
+        near = (xx - u) ** 2 + (yy - w) ** 2 <= BASE_WINDOW_PX ** 2
+        hid = (full.astype(bool) & ~m.astype(bool)).astype(np.uint8)
+        if hid.any():
+            near &= ~cv2.dilate(hid, kb).astype(bool)
+        obs = o.astype(bool)
+        outline = int(np.count_nonzero(obs & ~cv2.erode(o.astype(np.uint8), k3).astype(bool) & near))
+        if outline >= BASE_MIN_OUTLINE_PX:
+            out[k] = np.count_nonzero((obs ^ m.astype(bool)) & near) / outline
+    return out
+
+
 def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: Sequence[np.ndarray],
                 origins: Sequence[tuple[int, int]], tip_position: np.ndarray) -> np.ndarray:
     """(views,) mean boundary distance [px] within END_WINDOW_PX of the tip's projection:

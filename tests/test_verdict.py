@@ -803,3 +803,43 @@ def test_an_ok_fit_that_leaves_a_view_unexplained_gets_the_second_look():
     est = estimate(capture)
     assert est.verdict is Verdict.OK and _tip_mm(capture, est) < 2.0 and est.cost < first.cost
     assert max(est.view_offsets_px) < DEFAULT_CONFIG.recheck_offset_px
+
+
+def test_a_camera_turned_off_its_calibration_is_told_at_the_tapes_base(monkeypatch):
+    """Simulated capture 610001 (2 cameras) with every camera turned by 0.5 deg about a
+    random axis (the campaign's calib_rot_deg, draw 2): the fit bends the tape to make up for
+    the cameras and is "ok" 5.6 mm off without the base check; the observed tape around the
+    base, which cannot move, lies 6 px from the model there, so the estimate is a poor fit.
+    With the true cameras the base fits and the estimate is "ok"."""
+    from tapecell.estimator import fit, load_capture
+    from tapecell.sim.randomize import apply_to_capture
+
+    capture = load_capture(DATA / "sim-chain-c2-610001")
+    est = estimate(capture)
+    assert est.verdict is Verdict.OK and _tip_mm(capture, est) < 1.0
+    turned = apply_to_capture(capture, {"calib_rot_deg": 0.5}, 2)
+    est = estimate(turned)
+    assert est.verdict is Verdict.POOR_FIT and "at its base" in est.verdict_reason
+    monkeypatch.setattr(fit, "BASE_OFFSET_PX", float("inf"))
+    unchecked = estimate(turned)
+    assert unchecked.verdict is Verdict.OK and _tip_mm(capture, unchecked) > 5.0
+
+
+def test_base_offsets_measure_the_tape_at_its_base_clear_of_occluders():
+    from tapecell.estimator.verdict import BASE_OFFSET_PX, BASE_WINDOW_PX, base_offsets
+
+    capture = make_capture(4300, SyntheticOptions(cameras=2))
+    view = capture.views[0]
+    u, v = np.round(view.camera.project(capture.tape.base_position[None])[0]).astype(int)
+    h, w = view.mask.shape
+    model = np.zeros((h, w), np.uint8)
+    model[v - 15:v + 15, u - 60:u + 60] = 1            # a band across the base's projection
+    shifted = np.roll(model, 6, axis=0)                 # the observed tape 6 px off it
+    same = base_offsets([view], capture.tape.base_position, [model], [model], [model], [(0, 0)])
+    off = base_offsets([view], capture.tape.base_position, [shifted], [model], [model], [(0, 0)])
+    assert same[0] == 0.0 and off[0] > BASE_OFFSET_PX
+    # Where an occluder hides the model around the base, its outline is the occluder's: not counted.
+    hidden_model = model.copy()
+    hidden_model[v - BASE_WINDOW_PX:v + BASE_WINDOW_PX, u - BASE_WINDOW_PX:u + BASE_WINDOW_PX] = 0
+    occluded = base_offsets([view], capture.tape.base_position, [shifted], [hidden_model], [model], [(0, 0)])
+    assert occluded[0] == 0.0
