@@ -809,7 +809,7 @@ def test_a_camera_turned_off_its_calibration_is_told_at_the_tapes_base(monkeypat
     """Simulated capture 610001 (2 cameras) with every camera turned by 0.5 deg about a
     random axis (the campaign's calib_rot_deg, draw 2): the fit bends the tape to make up for
     the cameras and is "ok" 5.6 mm off without the base check; the observed tape around the
-    base, which cannot move, lies 6 px from the model there, so the estimate is a poor fit.
+    base, which cannot move, lies 6.3 px from the model there, so the estimate is a poor fit.
     With the true cameras the base fits and the estimate is "ok"."""
     from tapecell.estimator import fit, load_capture
     from tapecell.sim.randomize import apply_to_capture
