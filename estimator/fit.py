@@ -269,16 +269,19 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
                None if strip_shape is None else lambda: _offsets(capture, strip_shape.quads()))
     verdict, reason = j.verdict, j.reason
     if verdict is Verdict.OK:
-        # The base is fixed: the model must meet the observed tape there in every view.
-        quads = shape.quads()
-        full = [render(project_quads(t.camera, quads), t.shape, t.x0, t.y0) for t in targets]
-        base = base_offsets(capture.views, capture.tape.base_position, [t.observed for t in targets], models, full,
-                            [(t.x0, t.y0) for t in targets])
+        # The base is fixed: the model must meet the observed tape there in every view. (Of
+        # the plate chain, or of the strip where the strip explained the views for it.)
+        base = _base(capture, evaluator, models, shape.quads())
+        if j.by_strip and strip_shape is not None:
+            quads = strip_shape.quads()
+            strip_evaluator = _evaluator(capture, quads)
+            base = np.minimum(base, _base(capture, strip_evaluator, _seen_models(strip_evaluator, quads), quads))
         worst = int(np.argmax(base))
         if base[worst] > BASE_OFFSET_PX:
-            verdict, reason = Verdict.POOR_FIT, (f"view {worst} does not meet the tape at its base: mean boundary "
-                                                 f"distance {base[worst]:.1f} px there > {BASE_OFFSET_PX:g} px (is "
-                                                 f"the camera's calibration off?)")
+            verdict, reason = Verdict.POOR_FIT, (
+                f"view {worst} ({capture.views[worst].camera.name}) does not meet the tape at its base: mean "
+                f"boundary distance {base[worst]:.1f} px there > {BASE_OFFSET_PX:g} px (a camera's calibration or "
+                f"the base's pose in the cell file is off?)")
     if verdict is Verdict.OK:
         bend, joint = edgewise_bend(shape.frames)
         if bend > EDGEWISE_MAX_DEG:
@@ -286,6 +289,15 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
             verdict, reason = Verdict.POOR_FIT, (f"the shape {EDGEWISE} by {bend:.0f} deg at joint {joint} (> "
                                                  f"{EDGEWISE_MAX_DEG:g} deg): not a shape a tape takes")
     return verdict, reason, j.tip_views, tuple(near), j.offsets_px, j.by_strip
+
+
+def _base(capture: Capture, evaluator: CostEvaluator, models: list, quads: np.ndarray) -> np.ndarray:
+    """:func:`verdict.base_offsets` of ``quads`` whose seen silhouettes ``models`` are
+    ``evaluator``'s crops."""
+    targets = evaluator.targets
+    full = [render(project_quads(t.camera, quads), t.shape, t.x0, t.y0) for t in targets]
+    return base_offsets(capture.views, capture.tape.base_position, [t.observed for t in targets], models, full,
+                        [(t.x0, t.y0) for t in targets])
 
 
 def _hypotheses(capture: Capture, found: list, best_cost: float) -> list[Alternative]:

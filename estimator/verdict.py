@@ -310,18 +310,21 @@ def base_offsets(views: Sequence[View], base_position: np.ndarray, observed: Seq
     """(views,) mean boundary distance [px] between the observed silhouette and the model's
     around the tape's base (BASE_WINDOW_PX), where no occluder hides the model (``models``:
     the model as seen, ``unoccluded``: as if no box or ignore mask hid it; uint8 0/1 crops
-    at ``origins``, as :func:`assess` takes them); 0 for a view with too little outline
-    there (BASE_MIN_OUTLINE_PX)."""
+    at ``origins``, as :func:`assess` takes them): the XOR pixels over the observed
+    outline's length there; 0 for a view with too little observed outline there
+    (BASE_MIN_OUTLINE_PX). (The longer of the observed and the model's outlines as the
+    divisor, tried after review, let 4 of the 12 "ok" estimates of 975000- turned 0.5 deg
+    through, 5.5-9.3 mm off.)"""
     out = np.zeros(len(views))
     k3 = np.ones((3, 3), np.uint8)
     kb = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * BASE_OCCLUDED_PX + 1, 2 * BASE_OCCLUDED_PX + 1))
     for k, (v, o, m, full, (x0, y0)) in enumerate(zip(views, observed, models, unoccluded, origins)):
-        u, w = v.camera.project(np.asarray(base_position, float)[None])[0] - (x0, y0)
-        if not (np.isfinite(u) and np.isfinite(w)):
+        col, row = v.camera.project(np.asarray(base_position, float)[None])[0] - (x0, y0)
+        if not (np.isfinite(col) and np.isfinite(row)):
             continue
-        h, wd = o.shape
-        yy, xx = np.ogrid[0:h, 0:wd]
-        near = (xx - u) ** 2 + (yy - w) ** 2 <= BASE_WINDOW_PX ** 2
+        h, w = o.shape
+        yy, xx = np.ogrid[0:h, 0:w]
+        near = (xx - col) ** 2 + (yy - row) ** 2 <= BASE_WINDOW_PX ** 2
         hid = (full.astype(bool) & ~m.astype(bool)).astype(np.uint8)
         if hid.any():
             near &= ~cv2.dilate(hid, kb).astype(bool)

@@ -826,20 +826,30 @@ def test_a_camera_turned_off_its_calibration_is_told_at_the_tapes_base(monkeypat
 
 
 def test_base_offsets_measure_the_tape_at_its_base_clear_of_occluders():
-    from tapecell.estimator.verdict import BASE_OFFSET_PX, BASE_WINDOW_PX, base_offsets
+    from tapecell.estimator.verdict import BASE_OFFSET_PX, base_offsets
 
     capture = make_capture(4300, SyntheticOptions(cameras=2))
-    view = capture.views[0]
-    u, v = np.round(view.camera.project(capture.tape.base_position[None])[0]).astype(int)
-    h, w = view.mask.shape
-    model = np.zeros((h, w), np.uint8)
-    model[v - 15:v + 15, u - 60:u + 60] = 1            # a band across the base's projection
-    shifted = np.roll(model, 6, axis=0)                 # the observed tape 6 px off it
-    same = base_offsets([view], capture.tape.base_position, [model], [model], [model], [(0, 0)])
-    off = base_offsets([view], capture.tape.base_position, [shifted], [model], [model], [(0, 0)])
-    assert same[0] == 0.0 and off[0] > BASE_OFFSET_PX
-    # Where an occluder hides the model around the base, its outline is the occluder's: not counted.
-    hidden_model = model.copy()
-    hidden_model[v - BASE_WINDOW_PX:v + BASE_WINDOW_PX, u - BASE_WINDOW_PX:u + BASE_WINDOW_PX] = 0
-    occluded = base_offsets([view], capture.tape.base_position, [shifted], [hidden_model], [model], [(0, 0)])
-    assert occluded[0] == 0.0
+    view, base = capture.views[0], capture.tape.base_position
+    u, v = np.round(view.camera.project(base[None])[0]).astype(int)
+    x0, y0 = u - 100, v - 100                           # crops, as the fit's targets are
+    model = np.zeros((200, 200), np.uint8)
+    model[85:115, 40:160] = 1                           # a band across the base's projection
+    one, six = np.roll(model, 1, axis=0), np.roll(model, 6, axis=0)   # the observed tape 1 or 6 px off
+
+    def offset(observed, seen, unoccluded=None):
+        return base_offsets([view], base, [observed], [seen], [seen if unoccluded is None else unoccluded],
+                            [(x0, y0)])[0]
+    assert offset(model, model) == 0.0
+    assert 0.0 < offset(one, model) < 1.5 < BASE_OFFSET_PX < offset(six, model)
+    # Where an occluder hides the model, its outline is the occluder's: not counted, within
+    # BASE_OCCLUDED_PX of it; the rest of the window still is.
+    hidden_left = model.copy()
+    hidden_left[:, :100] = 0
+    assert offset(six, hidden_left, model) > BASE_OFFSET_PX
+    hidden_all = model.copy()
+    hidden_all[:, 40:160] = 0
+    assert offset(six, hidden_all, model) == 0.0
+    # Too little observed outline near the base (a broken sliver): not judged.
+    dots = np.zeros_like(model)
+    dots[100, 95:98] = 1
+    assert offset(dots, model) == 0.0
