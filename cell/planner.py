@@ -374,11 +374,12 @@ def plan_grasp(tip: TipFrame, params: GraspParams, gripper: GripperGeometry, lim
     # Grasp points only where the tape is known: without a centre line, along the tip's own
     # trunk up to the cell file's inset (further back along the trunk would be a guess);
     # with one, short of its base (beyond it grasp_frame stops at the base, on the part).
-    reach = float(params.inset) if tape_points is None else _line_length(tip, tape_points)
+    reach = (float(params.inset) if tape_points is None
+             else float(np.linalg.norm(np.diff(_centre_line(tip, tape_points), axis=0), axis=1).sum()))
     insets = [i for i in insets if i <= reach + 1e-9]
     if not insets:
-        raise PlanRefused("unreachable", f"no grasp point: the estimated tape is {_mm_len(reach)} long, the "
-                          f"cell file's inset {_mm_len(params.inset)}")
+        raise PlanRefused("unreachable", f"no grasp point: the estimated tape is {1e3 * reach:.0f} mm long, the "
+                          f"cell file's inset {1e3 * float(params.inset):.0f} mm")
     for inset in insets:
         grasp_position, grasp_rotation = grasp_frame(tip, inset, params.inset, tape_points)
         for tilts in (APPROACH_TILTS_RAD, BODY_SIDE_TILTS_RAD):
@@ -440,8 +441,7 @@ def grasp_frame(tip: TipFrame, inset: float, straight: float, tape_points: Any =
     R_tip = np.asarray(tip.rotation, float)
     if inset <= straight + 1e-12 or tape_points is None:
         return tip.position - inset * tip.trunk, R_tip
-    pts = np.asarray(tape_points, float)
-    line = [np.asarray(tip.position, float), *pts[-2::-1]]   # from the tip back to the base
+    line = list(_centre_line(tip, tape_points))
     left = inset
     for a, b in zip(line[:-1], line[1:]):
         length = float(np.linalg.norm(b - a))
@@ -460,16 +460,10 @@ def grasp_frame(tip: TipFrame, inset: float, straight: float, tape_points: Any =
     return position, turn @ R_tip
 
 
-def _line_length(tip: TipFrame, tape_points: Any) -> float:
-    """Length [m] of the estimated centre line :func:`grasp_frame` walks: from the tip back
-    through ``tape_points`` (base first, ending at the tip's plate) to the base."""
-    pts = np.asarray(tape_points, float)
-    line = np.vstack([np.asarray(tip.position, float)[None], pts[-2::-1]])
-    return float(np.linalg.norm(np.diff(line, axis=0), axis=1).sum())
-
-
-def _mm_len(x: float) -> str:
-    return f"{1e3 * float(x):.0f} mm"
+def _centre_line(tip: TipFrame, tape_points: Any) -> np.ndarray:
+    """(k, 3) the estimated centre line :func:`grasp_frame` walks: from the tip back through
+    ``tape_points`` (base first, ending at the tip's plate) to the base."""
+    return np.vstack([np.asarray(tip.position, float)[None], np.asarray(tape_points, float)[-2::-1]])
 
 
 def tape_surface_points(nodes: Any, frames: Any, width: float, step: float = 0.002) -> np.ndarray:

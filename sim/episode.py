@@ -72,7 +72,6 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     Ray task gets: the driver's file need not exist on the worker's machine), or None for
     the bundled one."""
     from .arm import SimArm
-    from tapecell.cell.config import CellConfig, load_cell_config
 
     from tapecell.cell.planner import PlanRefused, plan_for_estimate
     from tapecell.cell.safety import SafetyLimits
@@ -80,11 +79,9 @@ def run_episode(seed: int, cameras: int = 2, recording: Path | None = None,
     from tapecell.cell.story import Story
 
     from .look import MotionSampler
-    from .randomize import Randomize, apply_to_capture, apply_to_config, apply_to_model
+    from .randomize import apply_to_capture, apply_to_config, apply_to_model
 
-    cfg = config if isinstance(config, CellConfig) else load_cell_config(config)
-    if randomize is None:
-        randomize = Randomize.from_table(cfg.randomize, f"{cfg.source}: [randomize]")
+    cfg, randomize = _config_and_randomize(config, randomize)
     drawn = randomize.draw(seed)
     cameras = int(drawn.get("cameras", cameras))
     cfg = apply_to_config(cfg, drawn, seed)
@@ -1111,15 +1108,22 @@ def _drawn(seed: int, config: Any, randomize: Any) -> dict[str, Any] | None:
     the seed alone), for the record of an episode that ended in an error; None where there
     are none or they cannot be drawn (the error may be the cell file's)."""
     try:
-        from tapecell.cell.config import CellConfig, load_cell_config
-        from .randomize import Randomize
-
-        cfg = config if isinstance(config, CellConfig) else load_cell_config(config)
-        if randomize is None:
-            randomize = Randomize.from_table(cfg.randomize, f"{cfg.source}: [randomize]")
-        return randomize.draw(seed) or None
+        return _config_and_randomize(config, randomize)[1].draw(seed) or None
     except Exception:
         return None
+
+
+def _config_and_randomize(config: Any, randomize: Any):
+    """(the loaded cell file, the randomisation) :func:`run_episode` uses: ``config`` a
+    path, a loaded ``CellConfig`` or None (the bundled one); ``randomize`` None for the cell
+    file's ``[randomize]`` table."""
+    from tapecell.cell.config import CellConfig, load_cell_config
+    from .randomize import Randomize
+
+    cfg = config if isinstance(config, CellConfig) else load_cell_config(config)
+    if randomize is None:
+        randomize = Randomize.from_table(cfg.randomize, f"{cfg.source}: [randomize]")
+    return cfg, randomize
 
 
 def _failed(seed: int, cameras: int, reason: str, detail: str, drawn: dict[str, Any] | None = None) -> dict[str, Any]:
