@@ -188,6 +188,12 @@ def misfit_px(evaluator: CostEvaluator, quads: np.ndarray | None = None) -> floa
 
 
 _warmed = False
+RESOLVED_END_M = 0.002
+"""An "ambiguous" answer whose one rival, made the chain the estimator outputs (the strip
+from its plate fit), ends within this of the answer's end [m] no longer has a rival
+(:func:`_cheapest_first`). sim-chain-c2-981000: the rival, a plate fit 14 mm away, ended
+within 0.5 mm of the answer as a strip; a 10 mm bound (DISTINCT_TIP_M) let an answer 8.7
+mm off through on shell-c3-964007 with a wider LOCATE_BAND_PX."""
 
 
 def warm() -> None:
@@ -569,7 +575,11 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     d = float(np.linalg.norm(old.tip_position - alt.tip_position))
     swapped = (f"the search answered first with a shape whose tip is {1e3 * d:.0f} mm away and explains the "
                f"views worse (cost {old.cost:.3f} vs {cost:.3f})")
-    same_end = est.verdict is Verdict.OK and d <= DISTINCT_TIP_M
+    # The same end, found twice (the old answer "ok" too); or the one rival the old answer
+    # was ambiguous with ends, made the chain the estimator outputs, where the old answer
+    # does (within RESOLVED_END_M): no distinct end is left to be unsure of.
+    same_end = (est.verdict is Verdict.OK and d <= DISTINCT_TIP_M) or (
+        est.verdict is Verdict.AMBIGUOUS and len(est.alternatives) == 1 and d <= RESOLVED_END_M)
     probed_before = est.verdict is not Verdict.POOR_FIT
     if (verdict is Verdict.OK and not same_end) or (verdict is Verdict.POOR_FIT and probed_before):
         why = "not sure of either" if verdict is Verdict.OK else f"this one is judged: {reason}"

@@ -312,6 +312,60 @@ def test_unexplained_regions_near_the_tip():
     assert unexplained(band, model, tip, np.array([10.0, 0.0]), np.array([np.nan, 1.0]))[1] >= 19
 
 
+def test_a_band_along_the_models_edge_does_not_keep_a_view_from_locating_the_end():
+    """The third measure of ``unexplained``: unexplained tape near the tip counts against a
+    view locating the end only where it departs from the model's silhouette by more than
+    LOCATE_BAND_PX; a band along the model's edge (a curled corner, calibration error) does
+    not, tape going on past the end does."""
+    from tapecell.estimator.verdict import LOCATE_BAND_PX, LOCATE_UNEXPLAINED_PX, unexplained
+
+    model = np.zeros((120, 200), np.uint8)
+    model[40:80, 20:100] = 1                      # the model ends at x = 100
+    tip, trunk, half = np.array([100.0, 70.0]), np.array([10.0, 0.0]), np.array([0.0, 10.0])
+    near = int(LOCATE_BAND_PX) - 1                # rows up to this far below the model
+    band = model.copy()
+    band[80:80 + near, 60:101] = 1                # 40 px along the model's lower edge, to the tip
+    longest, _, departing = unexplained(band, model, tip, trunk, half)
+    assert longest > LOCATE_UNEXPLAINED_PX and departing == 0.0
+    wide = model.copy()
+    wide[80:80 + near + 4, 60:101] = 1            # the same band, 4 px thicker: tape the model left out
+    assert unexplained(wide, model, tip, trunk, half)[2] > LOCATE_UNEXPLAINED_PX
+    past = model.copy()
+    past[58:60, 100:160] = 1                      # a sliver going on 60 px past the end
+    assert 55 <= unexplained(past, model, tip, trunk, half)[2] <= 61
+
+
+def test_a_curled_corner_beside_a_right_end_is_located_and_a_stretch_the_model_misses_is_not():
+    """Simulated captures. sim-chain-c2-981017: the end's corner curls, leaving a band of
+    observed tape 21 px long along the model's edge, at most 7.4 px from it, in the view
+    that locates the end besides another: "ok", within 1 mm (it was "hidden"). And
+    sim-shell-c3-964007: observed tape the plate chain leaves out near the tip, 76-79 px
+    long and 9.6-11.2 px from the model in two views; a band rule 11 px wide made an
+    answer 8.7 mm off "ok". It must not be "ok" off by more than 3 mm."""
+    from tapecell.estimator import load_capture
+
+    good = load_capture(DATA / "sim-chain-c2-981017")
+    est = estimate(good)
+    assert est.verdict is Verdict.OK, est.verdict_reason
+    assert _tip_mm(good, est) < 1.0
+    bad = load_capture(DATA / "sim-shell-c3-964007")
+    est = estimate(bad)
+    assert est.verdict is not Verdict.OK or _tip_mm(bad, est) < 3.0, f"ok at {_tip_mm(bad, est):.1f} mm"
+
+
+def test_an_ambiguous_answer_whose_one_rival_ends_where_it_does_is_ok():
+    """sim-chain-c2-981000: the first answer (its strip's chain, cost 0.075) was ambiguous
+    with one rival, a plate fit 14 mm away (0.069). Made the chain the estimator outputs,
+    the rival's strip ends within 0.5 mm of the answer's end: one end, no rival left. "ok"
+    within 0.5 mm (it was "ambiguous": "not sure of either")."""
+    from tapecell.estimator import load_capture
+
+    capture = load_capture(DATA / "sim-chain-c2-981000")
+    est = estimate(capture)
+    assert est.verdict is Verdict.OK, est.verdict_reason
+    assert _tip_mm(capture, est) < 0.5
+
+
 def test_tape_past_the_models_end_is_never_ok():
     """One view shows the tape going on 60 px past where every 5-plate chain of its length
     must end (a sliver, as an end seen edge-on): the estimate must not be "ok"."""
