@@ -192,8 +192,8 @@ RESOLVED_END_M = 0.002
 """An "ambiguous" answer whose one rival, made the chain the estimator outputs (the strip
 from its plate fit), ends within this of the answer's end [m] no longer has a rival
 (:func:`_cheapest_first`). sim-chain-c2-981000: the rival, a plate fit 14 mm away, ended
-within 0.5 mm of the answer as a strip; a 10 mm bound (DISTINCT_TIP_M) let an answer 8.7
-mm off through on shell-c3-964007 with a wider LOCATE_BAND_PX."""
+within 0.5 mm of the answer as a strip. Not DISTINCT_TIP_M (10 mm): shell-c3-964007's
+answer and the cheaper chain that replaced it ended 9 mm apart, two ends, not one."""
 
 
 def warm() -> None:

@@ -402,9 +402,9 @@ def unexplained(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
     region counts as past the end). Third, the longest region's side among those that
     depart from the model's silhouette by more than LOCATE_BAND_PX somewhere (a band along
     the model's edge, within it everywhere, is the model's edge a few pixels off, not tape
-    the model leaves out: see LOCATE_UNEXPLAINED_PX). ``half_edge_px``: the image vector from the tip to one
-    corner of the tip edge; with it, the distance ahead is taken from the tip edge (the
-    segment between the corners), not from its middle: a thin band of tape along the tip
+    the model leaves out: see LOCATE_UNEXPLAINED_PX). ``half_edge_px``: the image vector
+    from the tip to one corner of the tip edge; with it, the distance ahead is taken from
+    the tip edge (the segment between the corners), not from its middle: a thin band of tape along the tip
     edge (an end edge a little curved or tilted against the model's straight one, as a
     shell tape's) goes on a few pixels past the end, not half the tape's width. (The
     reverse, model over background there, was measured and dropped: an edge-on end is a
