@@ -189,11 +189,13 @@ def misfit_px(evaluator: CostEvaluator, quads: np.ndarray | None = None) -> floa
 
 _warmed = False
 RESOLVED_END_M = 0.002
-"""An "ambiguous" answer whose one rival, made the chain the estimator outputs (the strip
-from its plate fit), ends within this of the answer's end [m] no longer has a rival
-(:func:`_cheapest_first`). sim-chain-c2-981000: the rival, a plate fit 14 mm away, ended
-within 0.5 mm of the answer as a strip. Not DISTINCT_TIP_M (10 mm): shell-c3-964007's
-answer and the cheaper chain that replaced it ended 9 mm apart, two ends, not one."""
+"""An "ambiguous" answer whose one alternative is a rival (its tip more than DISTINCT_TIP_M
+away) and, made the chain the estimator outputs (the strip from its plate fit), ends within
+this of the answer's end [m] no longer has a rival (:func:`_cheapest_first`).
+sim-chain-c2-981000: the rival, a plate fit 14 mm away, ended within 0.5 mm of the answer
+as a strip. Not DISTINCT_TIP_M (10 mm), which says when two ends are distinct, not when
+they are one: 2 mm is a few times the spread of one answer's tip between the estimator's
+looks. (No capture seen between 2 and 10 mm; the choice is the cautious one.)"""
 
 
 def warm() -> None:
@@ -540,11 +542,14 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     its output chain instead, an alternative whose plate fit the needle confirmed ended
     near the answer's end, and fresh episodes 941060 and 951030 lost it).
 
-    The swap never makes a new "ok": where the new judgement is "ok" it is "ambiguous" (a
-    search that answered with the costlier shape first is sure of neither; the needle may
-    settle it among the shapes, the old answer one of them), but where the old answer was
-    "ok" too and ends within DISTINCT_TIP_M of it (the same end, found twice: fresh
-    part-948053, 1.2 and 1.7 mm off, 1 mm apart, was a needless refusal). A "hidden" or
+    The swap makes no new "ok" from a different end: where the new judgement is "ok" it is
+    "ambiguous" (a search that answered with the costlier shape first is sure of neither;
+    the needle may settle it among the shapes, the old answer one of them), but where the
+    old answer was "ok" too and ends within DISTINCT_TIP_M of it (the same end, found twice:
+    fresh part-948053, 1.2 and 1.7 mm off, 1 mm apart, was a needless refusal), and where
+    the old answer was "ambiguous" with this one rival alone, which ends within
+    RESOLVED_END_M of it as an output chain (one end, no rival left; the rival's plate fit,
+    whose own end was the rival's, is not kept). Else a "hidden" or
     "ambiguous" answer stays one the needle probes ("ambiguous" where the new judgement is
     "poor_fit": every shape probed before is still there). A "poor_fit" answer takes the
     new judgement (its end measured only where that is "poor_fit" for the new end):
@@ -578,8 +583,9 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
     # The same end, found twice (the old answer "ok" too); or the one rival the old answer
     # was ambiguous with ends, made the chain the estimator outputs, where the old answer
     # does (within RESOLVED_END_M): no distinct end is left to be unsure of.
-    same_end = (est.verdict is Verdict.OK and d <= DISTINCT_TIP_M) or (
-        est.verdict is Verdict.AMBIGUOUS and len(est.alternatives) == 1 and d <= RESOLVED_END_M)
+    lone_rival = (est.verdict is Verdict.AMBIGUOUS and len(est.alternatives) == 1
+                  and float(np.linalg.norm(est.alternatives[k_best].tip_position - old.tip_position)) > DISTINCT_TIP_M)
+    same_end = (est.verdict is Verdict.OK and d <= DISTINCT_TIP_M) or (lone_rival and d <= RESOLVED_END_M)
     probed_before = est.verdict is not Verdict.POOR_FIT
     if (verdict is Verdict.OK and not same_end) or (verdict is Verdict.POOR_FIT and probed_before):
         why = "not sure of either" if verdict is Verdict.OK else f"this one is judged: {reason}"

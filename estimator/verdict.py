@@ -123,14 +123,14 @@ off had 25 px of it in the one view that located the end besides a sliver)."""
 LOCATE_BAND_PX = 7.5
 """... where the region departs from the model's silhouette by more than this [px]
 somewhere: a band along the model's edge, nowhere farther from it (UNEXPLAINED_MARGIN_PX
-and 5 px more, ~2 mm at the tape), is an edge of the model a few pixels off (a corner of a
+and 4.5 px more, ~2 mm at the tape), is an edge of the model a few pixels off (a corner of a
 curled end, an edge-on end a little tilted, calibration error), not tape the model left
 out. On the development captures of 964000-, 970000-, 976000- and 981000- (2,746 looks,
-123 views with more than 15 px): the views of right answers (tip within 3 mm) showed 4.2
-to 11.9 px, those of answers more than 5 mm off 8.2 px and more (calib_rot-976018, 5.2
-mm; shell-c3-964019, 32 mm, 9.6 px); 11 px made an answer 8.7 mm off "ok"
-(shell-c3-964007). 7.5 px turned 18 needless refusals of 2,283 captures "ok", no wrong
-one."""
+123 views with more than 15 px): the views of right answers (tip within 3 mm) showed 4.1
+px and more (52 of 98 at most 7.5), those of answers more than 5 mm off 8.5 px and more
+(calib_rot-976018, 5.2 mm; shell-c3-964019, 32 mm, 10.0 px); 11 px made an answer 8.7 mm
+off "ok" (shell-c3-964007). 7.5 px turned 18 needless refusals of 2,283 captures "ok", no
+wrong one."""
 PAST_END = "shows tape past the model's end"
 """The words of a ``poor_fit`` reason for tape going on past the model's end (the rest of
 the shape explains the views): a robot with a needle may measure where the end is."""
@@ -396,13 +396,14 @@ def unexplained_px(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
 
 def unexplained(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
                 trunk_px: np.ndarray | None = None, half_edge_px: np.ndarray | None = None) -> tuple[float, float, float]:
-    """Both measures of :func:`unexplained_px` in one pass: (the longest region's bounding
+    """The measures of :func:`unexplained_px` in one pass: (the longest region's bounding
     box side, how far tape goes on ahead of the tip along ``trunk_px``) [px]; the second is
     the first where the trunk's direction is unknown (None, or an end seen end-on: every
     region counts as past the end). Third, the longest region's side among those that
     depart from the model's silhouette by more than LOCATE_BAND_PX somewhere (a band along
     the model's edge, within it everywhere, is the model's edge a few pixels off, not tape
-    the model leaves out: see LOCATE_UNEXPLAINED_PX). ``half_edge_px``: the image vector
+    the model leaves out: see LOCATE_UNEXPLAINED_PX); a region's departure is taken over all
+    of it, also where it lies far from the tip (which errs towards counting it). ``half_edge_px``: the image vector
     from the tip to one corner of the tip edge; with it, the distance ahead is taken from
     the tip edge (the segment between the corners), not from its middle: a thin band of tape along the tip
     edge (an end edge a little curved or tilted against the model's straight one, as a
@@ -422,9 +423,7 @@ def unexplained(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
     if cv2.countNonZero(extra[a0:a1, b0:b1]) == 0:
         return 0.0, 0.0, 0.0
     _, labels, stats, _ = cv2.connectedComponentsWithStats(extra, connectivity=8)
-    # Each pixel's distance [px] from the model's silhouette (a model that covers nothing: far).
-    from_model = (cv2.distanceTransform((model == 0).astype(np.uint8), cv2.DIST_L2, 3) if model.any()
-                  else np.full(model.shape, np.inf, np.float32))
+    from_model = None
     along = None
     if trunk_px is not None and np.all(np.isfinite(trunk_px)) and np.linalg.norm(trunk_px) >= MIN_TRUNK_PX:
         along = np.asarray(trunk_px, float) / np.linalg.norm(trunk_px)
@@ -435,6 +434,12 @@ def unexplained(observed: np.ndarray, model: np.ndarray, tip_px: np.ndarray,
             continue
         longest = max(longest, float(max(bw, bh)))
         inside = labels[y:y + bh, x:x + bw] == label
+        if from_model is None:
+            # Each pixel's Euclidean distance [px] from the model's silhouette (exact, not
+            # the 3x3 mask's approximation, which errs by up to 0.4 px at this range; a
+            # model that covers nothing: far).
+            from_model = (cv2.distanceTransform((model == 0).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+                          if model.any() else np.full(model.shape, np.inf, np.float32))
         if float(from_model[y:y + bh, x:x + bw][inside].max()) > LOCATE_BAND_PX:
             departing = max(departing, float(max(bw, bh)))
         if along is not None:
@@ -699,7 +704,8 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     seen = [s_ and _on_outline(v, o, xy, edge, boxes) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
             for s_, v, o, xy in zip(seen, views, observed, origins)]
     # Observed tape near the tip that the model leaves unexplained, per view that sees the
-    # end: all of it, and what of it goes on past the tip.
+    # end: the regions of it that depart from the model beyond a band along its edge
+    # (LOCATE_BAND_PX), and how far any of it goes on past the tip.
     back = tip_position - 0.010 * tip_rotation[:, 0]
     corner = tip_position + 0.5 * width * tip_rotation[:, 1]
     extra, beyond, tips = [], [], []
@@ -710,8 +716,8 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
                              if s_ else (0.0, 0.0, 0.0))
         extra.append(regions)
         beyond.append(ahead)
-    # A view locates the end (counts towards the two) where nothing near it is left
-    # unexplained and it does not see the end edge-on as a sliver; a view that sees the end
+    # A view locates the end (counts towards the two) where little near it is left
+    # unexplained (LOCATE_UNEXPLAINED_PX) and it does not see the end edge-on as a sliver; a view that sees the end
     # but does not locate it is still held against the model below. (A sliver whose end
     # coincides with the model's was tried as locating the end: on fresh shell captures it
     # let through an "ok" 81 mm off.)

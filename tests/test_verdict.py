@@ -16,6 +16,8 @@ from tapecell.estimator.synthetic import SyntheticOptions, make_capture
 from tapecell.estimator.config import DEFAULT as DEFAULT_CONFIG
 from tapecell.estimator.verdict import POOR_OFFSET_PX, boundary_offsets, judge
 
+DATA = Path(__file__).resolve().parent / "data" / "captures"
+
 
 # The search as it was before the joints' lines joined the model's outline
 # (FitConfig.crease_t) and the wide search got steady curls (wide_curls, with
@@ -322,13 +324,13 @@ def test_a_band_along_the_models_edge_does_not_keep_a_view_from_locating_the_end
     model = np.zeros((120, 200), np.uint8)
     model[40:80, 20:100] = 1                      # the model ends at x = 100
     tip, trunk, half = np.array([100.0, 70.0]), np.array([10.0, 0.0]), np.array([0.0, 10.0])
-    near = int(LOCATE_BAND_PX) - 1                # rows up to this far below the model
+    near = int(np.floor(LOCATE_BAND_PX))          # rows 1..near px below the model (7 of 7.5)
     band = model.copy()
     band[80:80 + near, 60:101] = 1                # 40 px along the model's lower edge, to the tip
     longest, _, departing = unexplained(band, model, tip, trunk, half)
     assert longest > LOCATE_UNEXPLAINED_PX and departing == 0.0
     wide = model.copy()
-    wide[80:80 + near + 4, 60:101] = 1            # the same band, 4 px thicker: tape the model left out
+    wide[80:80 + near + 1, 60:101] = 1            # one row more, 8 px from the model: it departs
     assert unexplained(wide, model, tip, trunk, half)[2] > LOCATE_UNEXPLAINED_PX
     past = model.copy()
     past[58:60, 100:160] = 1                      # a sliver going on 60 px past the end
@@ -556,9 +558,6 @@ def test_a_sliver_view_locates_the_end_only_where_the_model_explains_all_of_it()
     assert not _explained(dotted, model)
     shifted = np.roll(model, 2, axis=0)           # a model 2 px off explains it (the margin)
     assert _explained(observed, shifted)
-
-
-DATA = Path(__file__).resolve().parent / "data" / "captures"
 
 
 def test_sliver_views_on_simulated_captures():
