@@ -53,7 +53,7 @@ from .geometry import Camera
 from .refine import curls, hooks, hypotheses, mirrors, refine, variants
 from .result import Alternative, CostHistory, Estimate, Verdict
 from .search import beam_search
-from .silhouette import CostEvaluator, combine, make_target, project_quads, render
+from .silhouette import CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
 from .tape import forward_kinematics
 from .verdict import (BASE_OFFSET_PX, DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess,
@@ -252,12 +252,19 @@ def _seen_models(evaluator: CostEvaluator, quads: np.ndarray) -> list[np.ndarray
     return [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(quads), evaluator.targets)]
 
 
-def _offsets(capture: Capture, quads: np.ndarray) -> np.ndarray:
-    """Per view, the mean boundary distance [px] between ``quads``' (m, 4, 3) silhouette and
-    the observed one (the verdict's measure, :func:`verdict.view_offsets`)."""
+def _seen_view(capture: Capture, quads: np.ndarray) -> tuple[CostEvaluator, list[np.ndarray]]:
+    """An evaluator rendering only where the mask or ``quads`` (m, 4, 3) are, and each
+    view's silhouette of them where its pixels are known."""
     evaluator = _evaluator(capture, quads)
-    view_costs = evaluator.view_costs(quads)
-    return view_offsets(view_costs, [t.observed for t in evaluator.targets], _seen_models(evaluator, quads))
+    return evaluator, _seen_models(evaluator, quads)
+
+
+def _offsets(capture: Capture, quads: np.ndarray, seen: tuple | None = None) -> np.ndarray:
+    """Per view, the mean boundary distance [px] between ``quads``' (m, 4, 3) silhouette and
+    the observed one (the verdict's measure, :func:`verdict.view_offsets`); ``seen``: their
+    :func:`_seen_view` when already made."""
+    evaluator, models = _seen_view(capture, quads) if seen is None else seen
+    return view_offsets(evaluator.view_costs(quads), [t.observed for t in evaluator.targets], models)
 
 
 def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, shape, tip_position: np.ndarray,
@@ -270,20 +277,24 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     views may stand for the plate chain's (:func:`verdict.explaining_offsets`)."""
     near = [h for h in hypotheses if is_close_alternative(h.cost, best_cost)]
     targets = evaluator.targets
-    models = _seen_models(evaluator, shape.quads())
+    quads = shape.quads()
+    models = _seen_models(evaluator, quads)
+    strip_offsets = None
+    if strip_shape is not None:
+        # The strip's silhouettes, rendered (when asked for) once for its offsets and its base.
+        strip_quads = strip_shape.quads()
+        strip_view = functools.cache(lambda: _seen_view(capture, strip_quads))
+        strip_offsets = lambda: _offsets(capture, strip_quads, strip_view())  # noqa: E731
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
-               [(a.cost, a.tip_position) for a in near],
-               None if strip_shape is None else lambda: _offsets(capture, strip_shape.quads()))
+               [(a.cost, a.tip_position) for a in near], strip_offsets)
     verdict, reason = j.verdict, j.reason
     if verdict is Verdict.OK:
         # The base is fixed: the model must meet the observed tape there in every view. (Of
         # the plate chain, or of the strip where the strip explained the views for it.)
-        base = _base(capture, evaluator, models, shape.quads())
+        base = _base(capture, evaluator, models, quads)
         if j.by_strip and strip_shape is not None:
-            quads = strip_shape.quads()
-            strip_evaluator = _evaluator(capture, quads)
-            base = np.minimum(base, _base(capture, strip_evaluator, _seen_models(strip_evaluator, quads), quads))
+            base = np.minimum(base, _base(capture, *strip_view(), strip_quads))
         worst = int(np.argmax(base))
         if base[worst] > BASE_OFFSET_PX:
             verdict, reason = Verdict.POOR_FIT, (
@@ -303,9 +314,8 @@ def _base(capture: Capture, evaluator: CostEvaluator, models: list, quads: np.nd
     """:func:`verdict.base_offsets` of ``quads`` whose seen silhouettes ``models`` are
     ``evaluator``'s crops."""
     targets = evaluator.targets
-    full = [render(project_quads(t.camera, quads), t.shape, t.x0, t.y0) for t in targets]
-    return base_offsets(capture.views, capture.tape.base_position, [t.observed for t in targets], models, full,
-                        [(t.x0, t.y0) for t in targets])
+    return base_offsets(capture.views, capture.tape.base_position, [t.observed for t in targets], models,
+                        evaluator.model_masks(quads, occluded=False), [(t.x0, t.y0) for t in targets])
 
 
 def _hypotheses(capture: Capture, found: list, best_cost: float) -> list[Alternative]:

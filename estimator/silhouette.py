@@ -285,9 +285,11 @@ class CostEvaluator:
         :meth:`view_costs` (or the last chain of :meth:`costs`) wrote, not copies."""
         return self._diff
 
-    def model_masks(self, quads_world: np.ndarray) -> list[np.ndarray]:
-        """The model silhouettes (ROI-sized uint8 images) for the given quads."""
-        return [render(project_quads(t.camera, self._seen(t, quads_world)), t.shape, t.x0, t.y0)
+    def model_masks(self, quads_world: np.ndarray, occluded: bool = True) -> list[np.ndarray]:
+        """The model silhouettes (ROI-sized uint8 images) for the given quads: behind the
+        scene boxes hidden, or, ``occluded`` False, as if no box hid them."""
+        return [render(project_quads(t.camera, self._seen(t, quads_world) if occluded else quads_world),
+                       t.shape, t.x0, t.y0)
                 for t in self.targets]
 
 
