@@ -310,10 +310,24 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
     return verdict, reason, j.tip_views, tuple(near), j.offsets_px, j.by_strip
 
 
+BASE_OCCLUSION_CELLS = 12
+"""Cells along and across a plate (2.5 mm of a 30 mm one) in which a box's edge cuts the
+model for the base check (:func:`_base`), where the fit's 3 (``OCCLUSION_CELLS``) put the
+cut up to a third of a plate from where the box hides the tape: at a part's edge, next to
+the tape's base, the first plate's cell drawn whole though the part hid its first few mm
+left 10 px of model the view did not show, and the base check refused right answers
+(part-993053, 6.5 px, 0.4 mm off; the base check keeps BASE_OCCLUDED_PX clear of where the
+model is hidden, and the coarse cut hid almost nothing there)."""
+
+
 def _base(capture: Capture, evaluator: CostEvaluator, models: list, quads: np.ndarray) -> np.ndarray:
     """:func:`verdict.base_offsets` of ``quads`` whose seen silhouettes ``models`` are
-    ``evaluator``'s crops."""
+    ``evaluator``'s crops; with scene boxes, of the model cut finer where a box hides it
+    (BASE_OCCLUSION_CELLS)."""
     targets = evaluator.targets
+    if capture.scene:
+        models = [m if t.valid is None else m & t.valid
+                  for m, t in zip(evaluator.model_masks(quads, cells=BASE_OCCLUSION_CELLS), targets)]
     return base_offsets(capture.views, capture.tape.base_position, [t.observed for t in targets], models,
                         evaluator.model_masks(quads, occluded=False), [(t.x0, t.y0) for t in targets])
 

@@ -171,14 +171,16 @@ def subdivide(quads: np.ndarray, k: int) -> np.ndarray:
     return cells.reshape(*quads.shape[:-2], k * k, 4, 3)
 
 
-def visible_quads(camera: Camera, quads_world: np.ndarray, boxes: Sequence[Box]) -> np.ndarray:
+def visible_quads(camera: Camera, quads_world: np.ndarray, boxes: Sequence[Box],
+                  cells: int = OCCLUSION_CELLS) -> np.ndarray:
     """What no box hides from ``camera`` of (m, 4, 3) world quads, as quads (c, 4, 3): a
     plate whose corners and centre are all seen whole, one they all hide not at all, and
-    the cells of the others that are seen."""
-    return visible_quads_batch(camera, np.asarray(quads_world, float).reshape(1, -1, 4, 3), boxes)[0]
+    the cells (``cells`` x ``cells`` a plate) of the others that are seen."""
+    return visible_quads_batch(camera, np.asarray(quads_world, float).reshape(1, -1, 4, 3), boxes, cells)[0]
 
 
-def visible_quads_batch(camera: Camera, quads_world: np.ndarray, boxes: Sequence[Box]) -> list[np.ndarray]:
+def visible_quads_batch(camera: Camera, quads_world: np.ndarray, boxes: Sequence[Box],
+                        cells_per_side: int = OCCLUSION_CELLS) -> list[np.ndarray]:
     """:func:`visible_quads` of B chains' quads (B, m, 4, 3) at once: a list of B (c, 4, 3)."""
     B, m = quads_world.shape[:2]
     probes = np.concatenate([quads_world, quads_world.mean(axis=2, keepdims=True)], axis=2)   # (B, m, 5, 3)
@@ -188,8 +190,8 @@ def visible_quads_batch(camera: Camera, quads_world: np.ndarray, boxes: Sequence
     whole, mixed = ~behind.any(axis=2), behind.any(axis=2) & ~behind.all(axis=2)
     if not mixed.any():
         return [quads_world[b][whole[b]] for b in range(B)]
-    k = OCCLUSION_CELLS * OCCLUSION_CELLS
-    cells = subdivide(quads_world[mixed], OCCLUSION_CELLS)                                  # (M, k, 4, 3)
+    k = cells_per_side * cells_per_side
+    cells = subdivide(quads_world[mixed], cells_per_side)                                  # (M, k, 4, 3)
     seen = ~_kernels_boxes.segments_hit_boxes(center, cells.reshape(-1, 4, 3).mean(axis=1), *arrays).reshape(-1, k)
     owner = np.nonzero(mixed)[0]
     return [np.concatenate([quads_world[b][whole[b]], cells[owner == b][seen[owner == b]]]) for b in range(B)]
@@ -219,8 +221,8 @@ class CostEvaluator:
         self._diff = [np.zeros(t.shape, np.uint8) for t in self.targets]
         self.evaluations = 0
 
-    def _seen(self, t: ViewTarget, quads_world: np.ndarray) -> np.ndarray:
-        return visible_quads(t.camera, quads_world, self.boxes) if self.boxes else quads_world
+    def _seen(self, t: ViewTarget, quads_world: np.ndarray, cells: int = OCCLUSION_CELLS) -> np.ndarray:
+        return visible_quads(t.camera, quads_world, self.boxes, cells) if self.boxes else quads_world
 
     def view_costs(self, quads_world: np.ndarray) -> np.ndarray:
         """(m, 4, 3) world quads -> (views,) normalised XOR costs s/r_d (eq. 5-7)."""
@@ -285,10 +287,13 @@ class CostEvaluator:
         :meth:`view_costs` (or the last chain of :meth:`costs`) wrote, not copies."""
         return self._diff
 
-    def model_masks(self, quads_world: np.ndarray, occluded: bool = True) -> list[np.ndarray]:
+    def model_masks(self, quads_world: np.ndarray, occluded: bool = True,
+                    cells: int = OCCLUSION_CELLS) -> list[np.ndarray]:
         """The model silhouettes (ROI-sized uint8 images) for the given quads: behind the
-        scene boxes hidden, or, ``occluded`` False, as if no box hid them."""
-        return [render(project_quads(t.camera, self._seen(t, quads_world) if occluded else quads_world),
+        scene boxes hidden (a plate a box's edge crosses cut into ``cells`` x ``cells``
+        cells, each hidden or not by its centre), or, ``occluded`` False, as if no box hid
+        them."""
+        return [render(project_quads(t.camera, self._seen(t, quads_world, cells) if occluded else quads_world),
                        t.shape, t.x0, t.y0)
                 for t in self.targets]
 

@@ -555,6 +555,22 @@ def test_disagreement_at_a_boxs_edge_does_not_make_a_view_unexplained():
     assert view_offsets(np.array([0.5]), [observed], [model])[0] > 0
 
 
+def test_the_base_check_cuts_the_model_finely_where_the_part_hides_it(monkeypatch):
+    """A fresh part capture (993053, 3 cameras) fitted within 0.5 mm: the tape's base is at
+    the part's edge, and the fit's coarse occlusion (3 x 3 cells a plate) drew the first
+    plate's cell whole though the part hides its first few mm, 10 px of model the view does
+    not show next to the base: the base check refused it (6.5 px). Cut in 2.5 mm cells for
+    the base check (fit.BASE_OCCLUSION_CELLS) the model meets the tape there."""
+    from tapecell.estimator import fit
+
+    capture = make_capture(993053, SyntheticOptions(part=True, cameras=3))
+    est = estimate(capture)
+    assert est.verdict is Verdict.OK and _tip_mm(capture, est) < 1.0, est.verdict_reason
+    monkeypatch.setattr(fit, "BASE_OCCLUSION_CELLS", 3)
+    coarse = estimate(capture)
+    assert coarse.verdict is Verdict.POOR_FIT and "at its base" in coarse.verdict_reason
+
+
 def test_an_end_short_of_the_image_border_is_located_one_at_the_border_is_not():
     """The tape's continuation past the tip would leave the image: where the view shows
     background between the tip and the border the silhouette's end is the tape's; where the
