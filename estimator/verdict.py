@@ -70,20 +70,24 @@ BOX_OUTLINE_PX = 3.0
 """Tip edge points this close [px] to a scene box's projected outline are not at the tape's
 own outline (the fit's ``box_edge_px`` alike)."""
 EDGE_RUN_PX = 5.0
+EDGE_RUN_TAPE_PX = 3
 EDGE_RUN_GAP_PX = 3.0
 EDGE_RUN_FRACTION = 0.125
 EDGE_RUN_MIN_PX = 6.0
 """... or a stretch of the tip edge from a corner, at least this fraction of its width and
 this long in the image [px], must lie within EDGE_RUN_PX (Euclidean) of observed
-background and of observed tape, and BOX_OUTLINE_PX + EDGE_RUN_GAP_PX clear of every scene
+background, within EDGE_RUN_TAPE_PX (a square) of observed tape (a model edge out over the
+background is no edge seen) and BOX_OUTLINE_PX + EDGE_RUN_GAP_PX clear of every scene
 box's projected outline: an end hooked over the tape's body shows part of its edge
 against the background (a notch's side), and that part locates it. (The wrong "ok" that
 made the rule above had the tip edge 8 px inside the silhouette an eighth of its width
 from the corner.) Until 2026-11-27 EDGE_RUN_PX was 3 px in a square (up to 4.2 px
-diagonally), the box gap alike: with both corners now asked for above, the hooked ends of
+diagonally), the tape's distance and the box gap alike: with both corners now asked for above, the hooked ends of
 shell tapes, half their edge 4-5 px in along the outline, went to this rule (shell-c2 and
 -c3-970017, 1.5-2.1 mm off). 5 px in a square (7 px diagonally) let through an edge whose
-stretch dived into the body 6.6 px in (occluded-976024, "ok" 6.6 mm off)."""
+stretch dived into the body 6.6 px in (occluded-976024, "ok" 6.6 mm off); observed tape
+within 5 px instead of 3 let a stretch out over the background through (occluded-996052,
+"ok" 6.2 mm off where the thorough look of a "hidden" answer finds it 0.3 mm off)."""
 FOLD_DEG = 120.0
 """A free end that turns back by more than this [deg] from the tape's first plate is folded
 back towards the body; an "ok" fit of a fold gets the estimator's thorough second look,
@@ -614,7 +618,7 @@ def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], point
         # On the outline: background and observed tape both within EDGE_RUN_PX (a model
         # edge out over the background is no edge seen).
         tight.append(box >= BOX_OUTLINE_PX + EDGE_RUN_GAP_PX and _background_within(observed, x, y, EDGE_RUN_PX)
-                     and _near_tape(observed, x, y, int(EDGE_RUN_PX)))
+                     and _near_tape(observed, x, y, EDGE_RUN_TAPE_PX))
     if loose[k // 2] and loose[0] and loose[-1]:
         return True
     run = int(np.ceil(EDGE_RUN_FRACTION * (k - 1))) + 1

@@ -496,6 +496,9 @@ def test_a_tip_edge_running_from_the_outline_into_the_body_does_not_locate_the_e
     hooked = np.column_stack([np.r_[np.full(5, -0.36), np.linspace(-0.26, 0.04, 4)],
                               np.r_[np.linspace(0.0, 0.3, 5), np.full(4, 0.3)], np.ones(9)])
     assert _on_outline(view, observed, (0, 0), hooked)
+    # The same stretch 4 px out over the background (u = 56): no edge seen there, the tape
+    # must be within 3 px (EDGE_RUN_TAPE_PX; occluded-996052 was "ok" 6.2 mm off with 5).
+    assert not _on_outline(view, observed, (0, 0), hooked - np.array([0.08, 0.0, 0.0]))
 
 
 def test_background_within_a_disc():
