@@ -17,7 +17,8 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
   least ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore
   mask and in front of every scene box; the end stands against the background there (the
   tip edge's middle and both corners within ``EDGE_PX`` of observed background, or a
-  stretch of it from a corner within ``EDGE_RUN_PX``: a tip over the tape's own body is not located by that
+  stretch of it from a corner within ``EDGE_RUN_PX`` of background and ``EDGE_RUN_TAPE_PX`` of
+  observed tape: a tip over the tape's own body is not located by that
   silhouette); the tape's continuation past the tip would be seen, or background is seen
   before the occluder; no observed tape leaves the image near the tip edge
   (``BORDER_CLEAR_PX``; a corner of the end touching the border is not the tape leaving,
@@ -65,8 +66,9 @@ tape) of observed background (a tip in front of or behind the tape's own body is
 located by that silhouette; 3 px refused 7 of 60 good sim fits whose estimated edge was a
 few px in). 10 px until 2026-11-27: part-997000 was "ok" 9.4 mm off, its tip edge 10-11 px
 inside one view's outline all along (the silhouette's edge there a fold, the end over the
-body); 8 px changed no other answer on 2,339 development captures (964000-, 970000-,
-976000-, 981000-, part 988000- and 997000-) but refusals' reasons, 6 px refused a right one.
+body); 8 px changed no other answer on about 2,300 development captures (964000-,
+970000-, 976000-, 981000-, part 988000- and 997000-) but refusals' reasons, 6 px refused a
+right one.
 Until 2026-11-27 the middle and one corner sufficed: a tip edge running from the outline
 into the body passed, one corner on the outline and the middle 10 px in (part-990066,
 "ok" 32.6 mm off; part-990031, "ok" 7.0 mm off, alike)."""
@@ -598,8 +600,8 @@ def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], point
     lie at the observed outline? Either its middle and both corners project within EDGE_PX
     of observed background (one corner on the outline and the rest running into the body
     is an end over the body), or a stretch of it from a corner, at least EDGE_RUN_FRACTION
-    of its width, lies within EDGE_RUN_PX (Euclidean) of it and of observed tape, on the
-    outline (an end
+    of its width, lies within EDGE_RUN_PX (Euclidean) of it and EDGE_RUN_TAPE_PX of observed
+    tape, on the outline (an end
     hooked over the body: part of its edge is seen against the background, the rest over
     the body); the stretch is tested at its sample points only (with 9 points: the corner
     and the point an eighth of the width in). (A tape seen end-on puts its
@@ -619,8 +621,8 @@ def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], point
             continue
         x, y = int(round(u)) - origin[0], int(round(v)) - origin[1]
         loose.append(box >= BOX_OUTLINE_PX and _near_background(observed, x, y, EDGE_PX))
-        # On the outline: background and observed tape both within EDGE_RUN_PX (a model
-        # edge out over the background is no edge seen).
+        # On the outline: background within EDGE_RUN_PX (Euclidean) and observed tape within
+        # EDGE_RUN_TAPE_PX (a model edge out over the background is no edge seen).
         tight.append(box >= BOX_OUTLINE_PX + EDGE_RUN_GAP_PX and _background_within(observed, x, y, EDGE_RUN_PX)
                      and _near_tape(observed, x, y, EDGE_RUN_TAPE_PX))
     if loose[k // 2] and loose[0] and loose[-1]:

@@ -178,18 +178,22 @@ def box_outline_px(camera: Camera, boxes, points: np.ndarray) -> np.ndarray:
 
 def box_outline_mask(camera: Camera, boxes, shape: tuple[int, int], origin: tuple[int, int],
                      px: float) -> np.ndarray:
-    """uint8 0/1 (h, w) crop (top-left pixel ``origin``) of the pixels within about ``px`` of a
-    scene box's projected outline (drawn as :func:`box_outline_px` measures it: the convex
-    hull of the box's projected corners, a box with a corner behind the camera left out)."""
-    out = np.zeros(shape, np.uint8)
+    """uint8 0/1 (h, w) crop (top-left pixel ``origin``) of the pixels within ``px`` (to
+    half a pixel) of a scene box's projected outline, as :func:`box_outline_px` measures it:
+    the convex hull of the box's projected corners, a box with a corner behind the camera
+    left out. (The outline drawn one pixel wide, then each pixel's Euclidean distance to
+    it: a thick line of OpenCV's reaches a pixel or two farther at its round ends.)"""
+    line = np.zeros(shape, np.uint8)
     for box in boxes:
         corners = box.center + (_BOX_SIGNS * box.half) @ box.rotation.T
         if np.any(camera.to_camera(corners)[:, 2] <= 0):
             continue
         hull = cv2.convexHull(camera.project(corners).astype(np.float32))[:, 0] - np.asarray(origin, np.float32)
         if np.all(np.isfinite(hull)) and np.all(np.abs(hull) < 1e6):
-            cv2.polylines(out, [np.rint(hull).astype(np.int32)], True, 1, thickness=2 * int(round(px)) + 1)
-    return out
+            cv2.polylines(line, [np.rint(hull).astype(np.int32)], True, 1)
+    if not line.any():
+        return line
+    return (cv2.distanceTransform(1 - line, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) <= px).astype(np.uint8)
 
 
 def _view_weight(roi: np.ndarray, perimeter: float, cfg: FitConfig) -> float:
