@@ -339,16 +339,20 @@ def test_two_touched_ends_a_few_millimetres_apart_are_one_end():
     assert outermost([(np.array([0.003, 0, 0]), np.eye(3)), (np.array([0.005, 0.001, 0]), np.eye(3))]) == 1
 
 
-def test_an_end_the_model_does_not_explain_is_measured_by_the_needle(capsys):
+def test_an_end_the_model_does_not_explain_is_measured_by_the_needle(capsys, monkeypatch):
     """Seed 520012: the tape's end hooks over within a few millimetres, which 30 mm plates
     cannot follow; the estimate is poor_fit ("does not explain the free end"). The needle
     touches tape at its tip and none 3 mm past it: the end is there, and the grasp is made.
     Which poor fits the needle settles: tape past the end or an unexplained end, not a view
-    the model does not explain at all."""
+    the model does not explain at all. (With the verdict's EDGE_PX at 10 px, as when this
+    was found: at 8 px, since 2026-11-27, that view no longer locates the end, the estimate
+    is not poor_fit, and the needle confirms its hypothesis instead, 1.7 mm off alike.)"""
     from tapecell.estimator import Verdict
+    from tapecell.estimator import verdict
     from tapecell.estimator.verdict import END_UNEXPLAINED, PAST_END
     from tapecell.cell.probe import end_measurable as end_to_measure
 
+    monkeypatch.setattr(verdict, "EDGE_PX", 10)
     code = main(["episode", "--seed", "520012"])
     out, err = capsys.readouterr()
     doc = json.loads(out)
