@@ -53,7 +53,7 @@ from .geometry import Camera
 from .refine import curls, hooks, hypotheses, mirrors, refine, variants
 from .result import Alternative, CostHistory, Estimate, Verdict
 from .search import beam_search
-from .silhouette import CostEvaluator, combine, make_target, project_quads
+from .silhouette import OCCLUSION_CELLS, CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
 from .tape import forward_kinematics
 from .verdict import (BASE_OFFSET_PX, DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess,
@@ -247,9 +247,11 @@ def _evaluator(capture: Capture, quads: np.ndarray) -> CostEvaluator:
     return CostEvaluator([make_target(v, roi=_cost_roi(v, quads)) for v in capture.views], capture.scene)
 
 
-def _seen_models(evaluator: CostEvaluator, quads: np.ndarray) -> list[np.ndarray]:
-    """Each view's silhouette of ``quads`` where its pixels are known (not ignored)."""
-    return [m if t.valid is None else m & t.valid for m, t in zip(evaluator.model_masks(quads), evaluator.targets)]
+def _seen_models(evaluator: CostEvaluator, quads: np.ndarray, cells: int = OCCLUSION_CELLS) -> list[np.ndarray]:
+    """Each view's silhouette of ``quads`` where its pixels are known (not ignored); a plate
+    a scene box's edge crosses cut into ``cells`` x ``cells`` cells."""
+    return [m if t.valid is None else m & t.valid
+            for m, t in zip(evaluator.model_masks(quads, cells=cells), evaluator.targets)]
 
 
 def _seen_view(capture: Capture, quads: np.ndarray) -> tuple[CostEvaluator, list[np.ndarray]]:
@@ -326,8 +328,7 @@ def _base(capture: Capture, evaluator: CostEvaluator, models: list, quads: np.nd
     (BASE_OCCLUSION_CELLS)."""
     targets = evaluator.targets
     if capture.scene:
-        models = [m if t.valid is None else m & t.valid
-                  for m, t in zip(evaluator.model_masks(quads, cells=BASE_OCCLUSION_CELLS), targets)]
+        models = _seen_models(evaluator, quads, BASE_OCCLUSION_CELLS)
     return base_offsets(capture.views, capture.tape.base_position, [t.observed for t in targets], models,
                         evaluator.model_masks(quads, occluded=False), [(t.x0, t.y0) for t in targets])
 

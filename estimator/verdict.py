@@ -38,6 +38,7 @@ in the README (``scripts/bench_verdict.py``).
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -576,6 +577,14 @@ def _near_background(observed: np.ndarray, x: int, y: int, r: int) -> bool:
     return bool((observed[y0:y1, x0:x1] == 0).any())
 
 
+@functools.lru_cache(maxsize=8)
+def _disc(r: float) -> np.ndarray:
+    """(2k+1, 2k+1) bool: the offsets within ``r`` px (Euclidean) of the centre, k = floor(r)."""
+    k = int(np.floor(r))
+    dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
+    return dx * dx + dy * dy <= r * r
+
+
 def _background_within(observed: np.ndarray, x: int, y: int, r: float) -> bool:
     """Is there observed background within ``r`` px (Euclidean: a disc) of crop pixel (x,
     y)? (The crop's outside counts as background.)"""
@@ -583,8 +592,7 @@ def _background_within(observed: np.ndarray, x: int, y: int, r: float) -> bool:
     k = int(np.floor(r))
     if x - k < 0 or y - k < 0 or x + k + 1 > w or y + k + 1 > h:
         return True
-    dy, dx = np.mgrid[-k:k + 1, -k:k + 1]
-    return bool((observed[y - k:y + k + 1, x - k:x + k + 1][dx * dx + dy * dy <= r * r] == 0).any())
+    return bool((observed[y - k:y + k + 1, x - k:x + k + 1][_disc(r)] == 0).any())
 
 
 def _near_tape(observed: np.ndarray, x: int, y: int, r: int) -> bool:
