@@ -438,7 +438,7 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         warm()  # once per process: compiling/loading the kernels is not fitting
     est = _look(capture, method, callback, thorough, config, second_look)
     if method == "default" and second_look and not thorough and _calibration_suspect(capture, est, config):
-        est = _recalibrated(capture, est, callback, config)
+        est = _recalibrated(capture, est, config)
     return est
 
 
@@ -458,18 +458,21 @@ def _calibration_suspect(capture: Capture, est: Estimate, config: FitConfig) -> 
             and bool(np.all(np.isfinite(np.asarray(est.view_offsets_px, float)))))
 
 
-def _recalibrated(capture: Capture, est: Estimate, callback: Callback | None, config: FitConfig) -> Estimate:
+def _recalibrated(capture: Capture, est: Estimate, config: FitConfig) -> Estimate:
     """The answer with every camera's rotation corrected from the views
     (:func:`recalibrate.camera_corrections`, from ``est``'s chain) where it is "ok", its
     reason naming the corrections; else ``est``. A correction beyond ``recalibrate.MAX_DEG``
-    for any camera is not taken. The time of both counts."""
+    for any camera is not taken. The time of both counts. The answer's nodes and tip are in
+    the world frame, which the tape's base anchors; its views' costs and offsets are on the
+    corrected cameras."""
     start = time.perf_counter()
     rotations = recalibrate.camera_corrections(capture, est.angles, config)
     degrees = np.degrees(np.linalg.norm(rotations, axis=1))
     spent = time.perf_counter() - start
     if np.any(degrees > recalibrate.MAX_DEG):
         return dataclasses.replace(est, time_s=est.time_s + spent)
-    again = _look(recalibrate.corrected(capture, rotations), "default", callback, False, config, True)
+    # (``callback`` saw the first look's iterations; the corrected look's are in ``trace``.)
+    again = _look(recalibrate.corrected(capture, rotations), "default", None, False, config, True)
     if again.verdict is not Verdict.OK:
         return dataclasses.replace(est, time_s=est.time_s + spent + again.time_s)
     turns = ", ".join(f"{v.camera.name} {d:.2f}" for v, d in zip(capture.views, degrees))
