@@ -427,7 +427,11 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     (the objective of the node being optimised).
     second_look: an unsure estimate (and an "ok" fold, an end seen end-on, a view still
     explained only roughly) gets a second, thorough look before the answer (below); False
-    answers from the first look.
+    answers from the first look. With three cameras or more, a ``poor_fit`` answer is then
+    estimated again with the cameras' rotations corrected from the views
+    (:func:`_recalibrated`; not with ``second_look`` False, ``thorough`` or the paper's
+    method); where that answer stands, its view costs and offsets are on the corrected
+    cameras and the callback has seen the first look's iterations.
     Returns an :class:`Estimate`; ``time_s`` is the fitting time alone.
     """
     if method not in ("default", "paper"):
@@ -437,7 +441,7 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
     if method == "default":
         warm()  # once per process: compiling/loading the kernels is not fitting
     est = _look(capture, method, callback, thorough, config, second_look)
-    if method == "default" and second_look and not thorough and _calibration_suspect(capture, est, config):
+    if method == "default" and second_look and not thorough and _calibration_suspect(capture, est):
         est = _recalibrated(capture, est, config)
     return est
 
@@ -451,7 +455,7 @@ roughly (a tape that is not the model) 1-2 mm worse, and an ``ambiguous`` one tu
 0.5 deg "ok" 6.2 mm off."""
 
 
-def _calibration_suspect(capture: Capture, est: Estimate, config: FitConfig) -> bool:
+def _calibration_suspect(capture: Capture, est: Estimate) -> bool:
     """Whether ``est`` (the answer of :func:`_look`) may be a calibration error's: three
     cameras or more whose masks were sound (finite offsets), and the answer ``poor_fit``."""
     return (SELF_CALIBRATE and est.verdict is Verdict.POOR_FIT and len(capture.views) >= recalibrate.MIN_VIEWS

@@ -56,7 +56,8 @@ POOR_OFFSET_PX = 2.5
 2026-11-27: fresh part-1010016 was "ok" 10.4 mm off with a view at 2.72 px (the tape coming
 out from behind the part bent the wrong way, its curled end's image a few px from the true
 one in both views); on 2,339 development captures (964000- to 997000-) 2.5 changed one
-answer, a refusal's reason (part-976000, 44 mm off, hidden -> poor_fit)."""
+answer, a refusal's reason (part-976000, 44 mm off, hidden -> poor_fit); it refuses the
+older test capture part-924052, right (1.1 mm off) with a view at 2.99 px."""
 END_OFFSET_PX = 2.5
 """Mean boundary distance [px] around the tip's projection above which a view that sees the
 free end does not explain it: the end itself is wrong (a curl the model did not follow)

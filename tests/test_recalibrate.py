@@ -83,9 +83,15 @@ def test_two_cameras_are_never_corrected(monkeypatch):
 
 
 def test_a_correction_beyond_a_calibration_error_is_not_taken(monkeypatch):
+    """The corrections this capture gets (0.4-0.5 deg, "ok" 0.3 mm off with them, above) are
+    beyond a MAX_DEG of 0.3: the first answer stands, and the corrected look is not made."""
     capture, _ = _turned_capture(SEED, 3, 0.5)
-    monkeypatch.setattr(recalibrate, "camera_corrections",
-                        lambda c, a, cfg=None: np.tile(np.radians([recalibrate.MAX_DEG + 0.5, 0.0, 0.0]), (3, 1)))
+    monkeypatch.setattr(recalibrate, "MAX_DEG", 0.3)
+
+    def refuse(*_a, **_k):
+        raise AssertionError("the corrected cameras were used")
+
+    monkeypatch.setattr(recalibrate, "corrected", refuse)
     est = estimate(capture)
     assert est.verdict is Verdict.POOR_FIT
     assert "turned from their calibration" not in est.verdict_reason
