@@ -60,7 +60,6 @@ def test_three_cameras_turned_half_a_degree_are_corrected_from_the_views(monkeyp
     assert "turned from their calibration" in after.verdict_reason
     # The first answer's words are not carried over: the needle reads them (probe.end_measurable).
     assert END_UNEXPLAINED not in after.verdict_reason and PAST_END not in after.verdict_reason
-    assert after.time_s > before.time_s      # the first look and the correction count
 
 
 def test_calibrated_cameras_get_almost_no_correction():
