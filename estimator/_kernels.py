@@ -480,6 +480,36 @@ def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: flo
     return res, (jac if jacobian else None), cost, pts, (J if jacobian else None)
 
 
+
+def rotation_terms(chain, fields, angles: np.ndarray, delta_out: float, delta_in: float) -> np.ndarray:
+    """The Jacobian (R, 3K) of :func:`view_terms`' rows (each view's coverage, then its sample
+    points, view after view) by each camera's rotation vector (its own frame, about its optical
+    centre), for one chain ``angles`` (n, 3); the robust weights held as for the joint angles.
+    Turning a camera by w moves a point's camera-frame position p to p + w x p: as the world
+    point moving by -R^T [p]x w, which :func:`view_residuals` takes as a point Jacobian of three
+    columns. A view's rows depend on its own camera alone."""
+    pair, pair_w, edge, weight, segments, fold_of, pos, rot, lengths, width = _chain_arrays(chain)
+    pts, _ = chain_points(np.ascontiguousarray(angles, float)[None], pos, rot, lengths, width, pair, pair_w, False)
+    ns = chain.samples
+    rows = [len(f.outline) + ns for f in fields]
+    out = np.zeros((sum(rows), 3 * len(fields)))
+    row = 0
+    for k, (f, n) in enumerate(zip(fields, rows)):
+        cam = f.camera
+        p = pts[0] @ cam.R.T + cam.t
+        skew = np.zeros((len(p), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = p[:, 2], -p[:, 1], p[:, 0]
+        point_jacobian = np.ascontiguousarray(-(cam.R.T @ skew)[None])
+        res, jac = np.empty((1, n)), np.empty((1, n, 3))
+        view_residuals(pts, point_jacobian, True, camera_params(cam), f.field, f.x0, f.y0, f.has_ignore, f.outline,
+                       ns, edge, weight, segments, fold_of, delta_out, delta_in, hidden_points(f, pts[:, :ns]), res,
+                       jac, 0)
+        out[row:row + n, 3 * k:3 * k + 3] = jac[0] * np.sqrt(f.weight)
+        row += n
+    return out
+
+
 _warm = False
 _WARM_BOX = Box("warm", np.zeros(3), np.full(3, 0.1), np.eye(3))
 

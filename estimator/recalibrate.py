@@ -7,7 +7,7 @@ explains all three at once is poor: ``poor_fit``, where the tape itself was seen
 Here the chain's joint angles and each camera's rotation about its optical centre are
 fitted together (Levenberg-Marquardt on the local stage's residuals, the rotations held
 near the calibration by a prior; their Jacobian columns from the residual kernel, the robust
-weights held as for the angles: :func:`_rotation_columns`), and the capture is estimated
+weights held as for the angles: :func:`_kernels.rotation_terms`), and the capture is estimated
 again with the corrected cameras (:func:`estimator.fit.estimate` decides when, and which
 answer stands).
 
@@ -28,7 +28,6 @@ from .chain import Chain
 from .config import DEFAULT, FitConfig
 from .geometry import Camera
 from . import _kernels
-from ._kernels_boxes import hidden_points
 from .residuals import residuals
 from .solver import levenberg_marquardt_one
 from .views import prepare
@@ -61,8 +60,6 @@ def camera_corrections(capture: Capture, angles: np.ndarray, cfg: FitConfig = DE
     fields = [prepare(v, capture.scene, cfg) for v in capture.views]
     K, na = len(fields), angles.size
     prior = PRIOR_PX / np.radians(SIGMA_DEG)
-    ns = chain.samples
-    arrays = _kernels._chain_arrays(chain)
 
     def at(w: np.ndarray) -> list:
         return [dataclasses.replace(f, camera=turned(f.camera, w[3 * k:3 * k + 3])) for k, f in enumerate(fields)]
@@ -72,12 +69,8 @@ def camera_corrections(capture: Capture, angles: np.ndarray, cfg: FitConfig = DE
         cams = at(w)
         r, J, cost = residuals(chain, cams, a, True, cfg)
         Jw = np.zeros((r.shape[1], 3 * K))
-        pts, _ = _kernels.points(chain, a.reshape(1, chain.n, 3), False)
-        row = 0
-        for k, f in enumerate(cams):
-            rows = len(f.outline) + ns
-            Jw[row:row + rows, 3 * k:3 * k + 3] = _rotation_columns(f, pts, ns, arrays, cfg)
-            row += rows
+        views = _kernels.rotation_terms(chain, cams, a.reshape(chain.n, 3), cfg.delta_out_px, cfg.delta_in_px)
+        Jw[:len(views)] = views      # the rows after the views' (prior, boxes) do not depend on them
         rp = prior * w
         Jp = np.zeros((3 * K, na + 3 * K))
         Jp[:, na:] = prior * np.eye(3 * K)
@@ -94,23 +87,3 @@ def corrected(capture: Capture, rotations: np.ndarray) -> Capture:
     views = [View(turned(v.camera, w), v.mask, v.ignore, v.image) for v, w in zip(capture.views, rotations)]
     return dataclasses.replace(capture, views=views)
 
-
-def _rotation_columns(field, pts: np.ndarray, ns: int, arrays: tuple, cfg: FitConfig) -> np.ndarray:
-    """(P + ns, 3): the Jacobian of ``field``'s rows of the residuals (its outline's coverage,
-    then the chain's ns sample points) by its camera's rotation vector, the robust weights held
-    as the local stage holds them. Turning the camera by w moves a point's camera-frame
-    position p to p + w x p: as the world point moving by -R^T [p]x w, which the residual
-    kernel takes as a point Jacobian of three columns. ``pts``: (1, ns + corners, 3)."""
-    cam = field.camera
-    p_cam = pts[0] @ cam.R.T + cam.t
-    skew = np.zeros((len(p_cam), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p_cam[:, 2], p_cam[:, 1], -p_cam[:, 0]
-    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = p_cam[:, 2], -p_cam[:, 1], p_cam[:, 0]
-    point_jacobian = np.ascontiguousarray(-(cam.R.T @ skew)[None])
-    _, _, edge, weight, segments, fold_of = arrays[:6]
-    rows = len(field.outline) + ns
-    res, jac = np.empty((1, rows)), np.empty((1, rows, 3))
-    _kernels.view_residuals(pts, point_jacobian, True, _kernels.camera_params(cam), field.field, field.x0, field.y0,
-                            field.has_ignore, field.outline, ns, edge, weight, segments, fold_of, cfg.delta_out_px,
-                            cfg.delta_in_px, hidden_points(field, pts[:, :ns]), res, jac, 0)
-    return jac[0] * np.sqrt(field.weight)
