@@ -97,6 +97,10 @@ def build_spec(cfg: CellConfig, n_cameras: int, tape: bool = True) -> mujoco.MjS
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
     spec.option.cone = mujoco.mjtCone.mjCONE_ELLIPTIC
     spec.option.impratio = 10.0
+    if tape:
+        # Dense constraint Jacobians: the same equations, solved ~25 % faster with the pads on the
+        # plate tape (98 dofs, ~80 contact rows; MuJoCo's automatic choice is sparse above 60).
+        spec.option.jacobian = mujoco.mjtJacobian.mjJAC_DENSE
     ov = cfg.overview
     spec.visual.global_.offwidth = max(ov.width, cfg.cameras.width)
     spec.visual.global_.offheight = max(ov.height, cfg.cameras.height)
@@ -202,6 +206,10 @@ def _add_tools(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
     _add_gripper(spec, cfg)
 
 
+FINGER_STOP_M = 0.001
+"""How far past the gripper's fully open command [m] each finger's joint stop lies."""
+
+
 def _add_gripper(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
     """Palm on the flange, two fingers sliding along the TCP's y, pads at the TCP."""
     gr = cfg.tools.gripper
@@ -220,8 +228,11 @@ def _add_gripper(spec: mujoco.MjSpec, cfg: CellConfig) -> None:
         f = body.add_body(name=f"finger_{side}", pos=[0, 0, 0])
         f.gravcomp = 1.0
         # q = 0: pad faces meet at the TCP; q > 0 opens by q on each side.
+        # The joint's stop lies FINGER_STOP_M beyond the fully open command: an open finger
+        # rests on its servo, not on the stop (a joint-limit row in every step of the arm's
+        # moves doubled a step's cost while the tape sleeps).
         f.add_joint(name=f"finger_{side}", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, sgn, 0],
-                    range=[-0.002, gr.max_opening / 2], damping=[20.0, 0, 0], armature=0.01)
+                    range=[-0.002, gr.max_opening / 2 + FINGER_STOP_M], damping=[20.0, 0, 0], armature=0.01)
         ft = gr.finger_thickness / 2
         f.add_geom(name=f"finger_{side}", type=box, size=[px / 2, ft, finger_len / 2],
                    pos=[0, sgn * (py + ft), -pz / 2 - finger_len / 2 + pz / 2 - 0.0],
