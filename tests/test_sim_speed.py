@@ -129,3 +129,35 @@ def test_tool_offsets_are_the_cell_files_and_read_only(cell):
         assert np.array_equal(arm.flange_from_tcp(tool), cell.config.tools.flange_from_tcp(tool))
         with pytest.raises(ValueError):
             arm._flange_from_tcp(tool)[0, 3] = 1.0
+
+
+def test_an_open_gripper_adds_no_constraint_while_the_tape_sleeps(cell):
+    """The fingers' stops lie past the open command (``scene.FINGER_STOP_M``): an open finger
+    rests on its servo, so a step of the arm's moves with the tape asleep has no constraint
+    row at all (a joint-limit row there doubled such a step's cost). The plate tape's
+    model solves its constraints with dense Jacobians (faster with the pads on the tape)."""
+    import mujoco
+
+    from tapecell.sim.arm import SimArm, _ramp
+    from tapecell.sim.scene import FINGER_STOP_M
+
+    m = cell.model
+    assert m.opt.jacobian == mujoco.mjtJacobian.mjJAC_DENSE
+    open_half = cell.config.tools.gripper.max_opening / 2
+    for j in cell.finger_qadr:
+        assert m.jnt_range[list(m.jnt_qposadr).index(j), 1] == pytest.approx(open_half + FINGER_STOP_M)
+    cell.reset(3)
+    SimArm(cell).open_gripper()
+    cell.set_tape_sleep(True)
+    rows = []
+    cell.step_hook = lambda: rows.append((cell.data.nefc, cell.data.ntree_awake < m.ntree))
+    try:
+        q0 = cell.arm_ctrl.copy()
+        cell.step_targets(cell.arm_ctrl, _ramp(q0, q0 + np.array([0.1, -0.05, 0.05, 0.0, 0.05, -0.1]), 300))
+    finally:
+        cell.step_hook = None
+        cell.set_tape_sleep(False)
+    asleep = [n for n, sleeping in rows if sleeping]
+    assert len(asleep) > 200                 # the tape did fall asleep
+    assert max(asleep) == 0
+    assert np.allclose(cell.finger_qpos, open_half, atol=2e-4)
