@@ -1016,6 +1016,27 @@ def test_a_camera_turned_off_its_calibration_is_told_at_the_tapes_base(monkeypat
     assert unchecked.verdict is Verdict.OK and _tip_mm(capture, unchecked) > 5.0
 
 
+@pytest.mark.parametrize("seed", [1015010, 1015014])
+def test_two_cameras_turned_half_a_degree_are_not_ok_far_off(monkeypatch, seed):
+    """Simulated captures of a sweep's episodes (2 cameras) with every camera turned 0.5 deg
+    (``calib_rot_deg``, drawn from the episode's seed, as the sweep drew it): the grasps went
+    for "ok" estimates 13.7 and 10.2 mm off, the views explained to 1-2 px, their bases
+    3.5-4.0 px off, under the 4.5 px BASE_OFFSET_PX had then. Now they are poor fits, at
+    the base; with the true cameras the bases fit (0.2 px) and the estimates are "ok"."""
+    from tapecell.estimator import fit, load_capture
+    from tapecell.sim.randomize import apply_to_capture
+
+    capture = load_capture(DATA / f"sim-chain-c2-{seed}")
+    est = estimate(capture)
+    assert est.verdict is Verdict.OK and _tip_mm(capture, est) < 4.0
+    turned = apply_to_capture(capture, {"calib_rot_deg": 0.5}, seed)
+    est = estimate(turned)
+    assert est.verdict is Verdict.POOR_FIT and "at its base" in est.verdict_reason
+    monkeypatch.setattr(fit, "BASE_OFFSET_PX", 4.5)
+    before = estimate(turned)
+    assert before.verdict is Verdict.OK and _tip_mm(capture, before) > 10.0
+
+
 def test_base_offsets_measure_the_tape_at_its_base_clear_of_occluders():
     from tapecell.estimator.verdict import BASE_OFFSET_PX, base_offsets
 
