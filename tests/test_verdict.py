@@ -131,13 +131,16 @@ def test_a_view_the_strip_explains_is_explained(monkeypatch):
     strip's offsets stand: "ok", the tip within 1.5 mm. verdict.explaining_offsets takes
     the strip's only where its worst view is better explained. (Built on the view threshold
     of its time, 3 px; from 2026-11-27 it is 2.5 px, and the default plate chain's 2.75 px
-    goes to the strip's offsets as well.)"""
+    goes to the strip's offsets as well. The base check of its time, 4.5 px, is pinned too:
+    this capture's base shows 3.1 px with the true cameras, where the part hides part of
+    it, and the 3 px threshold of 2026-11-27 refuses it.)"""
     from tapecell.estimator import forward_kinematics
     from tapecell.estimator.fit import _offsets
     from tapecell.estimator.verdict import STRIP_PLATE_MAX_PX, explaining_offsets
 
     POOR_OFFSET_PX = 3.0
     monkeypatch.setattr("tapecell.estimator.verdict.POOR_OFFSET_PX", POOR_OFFSET_PX)
+    monkeypatch.setattr("tapecell.estimator.fit.BASE_OFFSET_PX", 4.5)
     capture = make_capture(891011, SyntheticOptions(part=True, cameras=3))
     est = estimate(capture)
     assert est.verdict is Verdict.OK, est.verdict_reason
