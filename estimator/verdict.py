@@ -364,7 +364,11 @@ off (4.5 px: two, 11.6 and 12.8 mm) and one more than 5 mm off in each (4.5 px: 
 and with three cameras it sends more answers through the cameras' correction, whose tips
 come closer (e.g. 3.5 -> 0.6 mm); on calibrated captures of every bench kind (the same
 ranges, ~540 each) it changed no answer. 2.5 px moved two corrected 3-camera answers
-further off (0.55 -> 1.53, 2.21 -> 3.04 mm); 2.0 px refused right ones."""
+further off (0.55 -> 1.53, 2.21 -> 3.04 mm); 2.0 px refused right ones. What it costs: with
+two cameras, answers turned 0.3 deg (3.5-5.2 px above, 1.2-4.9 mm off) are refused rather
+than grasped (three cameras correct them); and a calibrated part capture whose base the
+part half hides can show 3-3.4 px (part-891011, 3.1 px, 3 cameras, refused; none in
+976000-/981000-)."""
 BASE_WINDOW_PX = 40
 """... measured within this radius [px] of the base's projection ..."""
 BASE_OCCLUDED_PX = 12
