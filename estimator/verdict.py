@@ -232,6 +232,9 @@ class Judgement:
     offsets_px: np.ndarray
     by_strip: bool = False
     """the offsets are the strip's (:func:`explaining_offsets`), not the plate chain's"""
+    hooked_across: bool = False
+    """a view that locates the end does so only as a hooked end (:func:`outline_rule`) with
+    both of the tip edge's corners at the outline and its middle inside the silhouette"""
 
 
 def _outline(m: np.ndarray) -> tuple[float, float]:
@@ -622,7 +625,15 @@ def _near_tape(observed: np.ndarray, x: int, y: int, r: int) -> bool:
 
 def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray,
                 boxes: Sequence[Box] = ()) -> bool:
-    """Does the tip edge (``points`` (k, 3), k odd, evenly from one corner to the other)
+    """Does the tip edge lie at the observed outline (:func:`outline_rule`)?"""
+    return bool(outline_rule(view, observed, origin, points, boxes))
+
+
+def outline_rule(view: View, observed: np.ndarray, origin: tuple[int, int], points: np.ndarray,
+                 boxes: Sequence[Box] = ()) -> str:
+    """Which rule puts the tip edge at the observed outline: "edge", "hook", "hook_across"
+    (a hooked end whose tip edge has both corners within EDGE_PX of background but not its
+    middle), or "" (none). Does the tip edge (``points`` (k, 3), k odd, evenly from one corner to the other)
     lie at the observed outline? Either its middle and both corners project within EDGE_PX
     of observed background (one corner on the outline and the rest running into the body
     is an end over the body), or a stretch of it from a corner, at least EDGE_RUN_FRACTION
@@ -652,10 +663,12 @@ def _on_outline(view: View, observed: np.ndarray, origin: tuple[int, int], point
         tight.append(box >= BOX_OUTLINE_PX + EDGE_RUN_GAP_PX and _background_within(observed, x, y, EDGE_RUN_PX)
                      and _near_tape(observed, x, y, EDGE_RUN_TAPE_PX))
     if loose[k // 2] and loose[0] and loose[-1]:
-        return True
+        return "edge"
     run = int(np.ceil(EDGE_RUN_FRACTION * (k - 1))) + 1
     long_enough = [np.linalg.norm(uv[a] - uv[b]) >= EDGE_RUN_MIN_PX for a, b in ((0, run - 1), (k - 1, k - run))]
-    return (all(tight[:run]) and long_enough[0]) or (all(tight[k - run:]) and long_enough[1])
+    if (all(tight[:run]) and long_enough[0]) or (all(tight[k - run:]) and long_enough[1]):
+        return "hook_across" if loose[0] and loose[-1] else "hook"
+    return ""
 
 
 def _visible(view: View, points: np.ndarray, boxes: Sequence[Box]) -> np.ndarray:
@@ -785,8 +798,9 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     offsets = explaining_offsets(plate_offsets, strip_offsets)
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
-    seen = [s_ and _on_outline(v, o, xy, edge, boxes) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
-            for s_, v, o, xy in zip(seen, views, observed, origins)]
+    rules = [outline_rule(v, o, xy, edge, boxes) if s_ else "" for s_, v, o, xy in zip(seen, views, observed, origins)]
+    seen = [s_ and bool(r) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
+            for s_, r, v, o, xy in zip(seen, rules, views, observed, origins)]
     # Observed tape near the tip that the model leaves unexplained, per view that sees the
     # end: the regions of it that depart from the model beyond a band along its edge
     # (LOCATE_BAND_PX), and how far any of it goes on past the tip.
@@ -831,7 +845,8 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
         k = bad_end[0]
         verdict, reason = Verdict.POOR_FIT, (f"view {k} {END_UNEXPLAINED}: mean boundary distance "
                                              f"{ends[k]:.1f} px around the tip > {END_OFFSET_PX:g} px")
-    return Judgement(verdict, reason, sum(locates), offsets, offsets is not plate_offsets)
+    across = any(lo and r == "hook_across" for lo, r in zip(locates, rules))
+    return Judgement(verdict, reason, sum(locates), offsets, offsets is not plate_offsets, across)
 
 
 def end_on(view: View, tip_position: np.ndarray, tip_rotation: np.ndarray) -> bool:

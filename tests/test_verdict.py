@@ -511,6 +511,48 @@ def test_a_tip_edge_running_from_the_outline_into_the_body_does_not_locate_the_e
     assert not _on_outline(view, observed, (0, 0), hooked - np.array([0.08, 0.0, 0.0]))
 
 
+def test_the_rule_that_locates_a_tip_edge_is_named():
+    """outline_rule says which rule put a tip edge at the outline: "edge" (both corners and
+    the middle near background), "hook" (a stretch from one corner), "hook_across" (a
+    stretch from a corner, both corners near background, the middle inside: the estimate
+    then gets the second look, fit.HOOKED_ACROSS_LOOK), "" (none)."""
+    from tapecell.estimator import Camera
+    from tapecell.estimator.verdict import outline_rule
+
+    cam = Camera("c", 200, 200, np.array([[100.0, 0, 100], [0, 100.0, 100], [0, 0, 1]]), np.zeros(5),
+                 np.eye(3), np.zeros(3))
+    body = np.zeros((200, 200), np.uint8)
+    body[40:160, 60:140] = 1
+    view = View(cam, body.astype(bool))
+    along = np.column_stack([np.full(9, -0.37), np.linspace(0.0, 0.2, 9), np.ones(9)])
+    assert outline_rule(view, body, (0, 0), along) == "edge"
+    hooked = np.column_stack([np.r_[np.full(5, -0.36), np.linspace(-0.26, 0.04, 4)],
+                              np.r_[np.linspace(0.0, 0.3, 5), np.full(4, 0.3)], np.ones(9)])
+    assert outline_rule(view, body, (0, 0), hooked) == "hook"
+    into = np.column_stack([np.linspace(-0.39, -0.23, 9), np.linspace(0.0, 0.12, 9), np.ones(9)])
+    assert outline_rule(view, body, (0, 0), into) == ""
+    hook = body.copy()
+    hook[40:101, 140:180] = 1          # an end hooked over the body, its edge on the row v = 100
+    across = np.column_stack([np.linspace(-0.4, 0.8, 9), np.zeros(9), np.ones(9)])
+    assert outline_rule(View(cam, hook.astype(bool)), hook, (0, 0), across) == "hook_across"
+
+
+def test_an_end_located_across_a_hook_gets_the_second_look(monkeypatch):
+    """Fresh bench capture part-1017027 (3 cameras, the true cameras): the first look's end
+    was "ok" 9.45 mm off, one view locating it as a hooked end whose tip edge had both
+    corners on the outline and its middle inside the silhouette. Such an "ok" gets the
+    second look (fit.HOOKED_ACROSS_LOOK), which finds the end within 2.5 mm."""
+    from tapecell.estimator import fit
+
+    capture = make_capture(1017027, SyntheticOptions(cameras=3, part=True))
+    monkeypatch.setattr(fit, "HOOKED_ACROSS_LOOK", 0)
+    first = estimate(capture)
+    assert first.verdict is Verdict.OK and _tip_mm(capture, first) > 8.0
+    monkeypatch.setattr(fit, "HOOKED_ACROSS_LOOK", 1)
+    est = estimate(capture)
+    assert est.verdict is Verdict.OK and _tip_mm(capture, est) < 2.5
+
+
 def test_a_tip_edge_inside_a_views_outline_all_along_does_not_locate_the_end():
     """A fresh part capture (997000): one view sees the tape face on, its end curled over
     the body, and the silhouette's edge there a fold. The fit's tip edge lay 10-11 px inside
