@@ -480,7 +480,6 @@ def view_terms(chain, fields, angles: np.ndarray, jacobian: bool, delta_out: flo
     return res, (jac if jacobian else None), cost, pts, (J if jacobian else None)
 
 
-
 def rotation_terms(chain, fields, angles: np.ndarray, delta_out: float, delta_in: float) -> np.ndarray:
     """The Jacobian (R, 3K) of :func:`view_terms`' rows (each view's coverage, then its sample
     points, view after view) by each camera's rotation vector (its own frame, about its optical

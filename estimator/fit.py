@@ -271,8 +271,8 @@ def _offsets(capture: Capture, quads: np.ndarray, seen: tuple | None = None) -> 
 
 def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, shape, tip_position: np.ndarray,
            tip_rotation: np.ndarray, best_cost: float, hypotheses: list, strip_shape=None):
-    """(verdict, reason, tip_views, alternatives, per-view offsets [px], whether the strip's
-    offsets judged) of the output ``shape`` whose
+    """(the :class:`~verdict.Judgement` of the output ``shape``, its verdict and reason
+    final here, and the alternatives weighed) for the ``shape`` whose
     ``view_costs`` ``evaluator`` gave; ``best_cost``: the plate fit's eq.-11 cost, the
     scale of the ``hypotheses`` [:class:`Alternative`], those within the ambiguity margin
     of it weighed; ``strip_shape``: the strip the tip frame comes from, whose fit to the
@@ -309,7 +309,7 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
             # A tape hardly bends within its own plane: no tape takes this shape.
             verdict, reason = Verdict.POOR_FIT, (f"the shape {EDGEWISE} by {bend:.0f} deg at joint {joint} (> "
                                                  f"{EDGEWISE_MAX_DEG:g} deg): not a shape a tape takes")
-    return verdict, reason, j.tip_views, tuple(near), j.offsets_px, j.by_strip, j.hooked_across
+    return dataclasses.replace(j, verdict=verdict, reason=reason), tuple(near)
 
 
 BASE_OCCLUSION_CELLS = 12
@@ -534,9 +534,10 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     tip_position, tip_rotation = (strip.tip if strip is not None
                                   else (shape.nodes[-1].copy(), shape.frames[-1].copy()))
     scale = min(plate_cost, combine(view_costs))
-    verdict, reason, tip_views, alternatives, offsets, by_strip, hooked_across = _judge(
+    j, alternatives = _judge(
         capture, evaluator, view_costs, shape, tip_position, tip_rotation, scale, _hypotheses(capture, found, scale),
         None if strip is None else strip.fine)
+    verdict, reason, tip_views, offsets = j.verdict, j.reason, j.tip_views, j.offsets_px
     elapsed = time.perf_counter() - start
     if method == "default":
         # The cost per iteration on the eq.-11 scale, for recordings and plots: computed when
@@ -565,12 +566,12 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     rough = ok and not bool(np.all(np.asarray(offsets, float) <= config.recheck_offset_px))
     # An "ok" whose views only the strip explains (verdict.explaining_offsets) was a poor fit
     # of the plate chain: it gets the look a poor fit gets.
-    unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN) or (ok and by_strip)
-    across = ok and HOOKED_ACROSS_LOOK and hooked_across
+    unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN) or (ok and j.by_strip)
+    across = ok and HOOKED_ACROSS_LOOK and j.hooked_across
     if method == "default" and second_look and not thorough and (folded or seen_end_on or unsure or rough or across):
         # An "ok" estimate (a fold, an end seen end-on, a rough view) gets a smaller thorough beam
         # (FitConfig.fold_beam).
-        look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok and not by_strip else config
+        look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok and not j.by_strip else config
         if verdict is not Verdict.HIDDEN:
             # Hooked-back ends only where the end is out of sight: a hooked plate fit whose
             # strip cannot follow it lowered the scale alternatives are weighed on, and
@@ -658,9 +659,9 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
               for k, a in enumerate(est.alternatives) if k != k_best]
     others = [a for a in others if np.linalg.norm(a.tip_position - alt.tip_position) > DISTINCT_TIP_M]
     others = sorted([old] + others, key=lambda a: a.cost)
-    verdict, reason, tip_views, _, offsets, _, _ = _judge(
-        capture, evaluator, view_costs, shape, alt.tip_position, alt.tip_rotation,
-        min(est.alternatives[k_best].cost, cost), others, strip_shape)
+    j, _ = _judge(capture, evaluator, view_costs, shape, alt.tip_position, alt.tip_rotation,
+                  min(est.alternatives[k_best].cost, cost), others, strip_shape)
+    verdict, reason, tip_views, offsets = j.verdict, j.reason, j.tip_views, j.offsets_px
     d = float(np.linalg.norm(old.tip_position - alt.tip_position))
     swapped = (f"the search answered first with a shape whose tip is {1e3 * d:.0f} mm away and explains the "
                f"views worse (cost {old.cost:.3f} vs {cost:.3f})")

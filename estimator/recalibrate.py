@@ -86,4 +86,3 @@ def corrected(capture: Capture, rotations: np.ndarray) -> Capture:
     """``capture`` with each camera turned by its row of ``rotations`` (K, 3) [rad]."""
     views = [View(turned(v.camera, w), v.mask, v.ignore, v.image) for v, w in zip(capture.views, rotations)]
     return dataclasses.replace(capture, views=views)
-

@@ -93,8 +93,7 @@ def refit(capture: Capture, angles: np.ndarray, point: np.ndarray, depth: float,
             angles_out, tip, fine = out, output.tip, output.fine
             shape, view_costs, evaluator = costed
     tip_position, tip_rotation = tip if tip is not None else (shape.nodes[-1].copy(), shape.frames[-1].copy())
-    verdict, reason, tip_views, _, offsets, _, _ = _judge(capture, evaluator, view_costs, shape, tip_position,
-                                                    tip_rotation, combine(view_costs), [], fine)
+    j, _ = _judge(capture, evaluator, view_costs, shape, tip_position, tip_rotation, combine(view_costs), [], fine)
     return Estimate(shape.nodes, angles_out, tip_position, tip_rotation, combine(view_costs), view_costs,
-                    time.perf_counter() - start, "default", verdict=verdict, verdict_reason=reason,
-                    tip_views=tip_views, view_offsets_px=offsets)
+                    time.perf_counter() - start, "default", verdict=j.verdict, verdict_reason=j.reason,
+                    tip_views=j.tip_views, view_offsets_px=j.offsets_px)

@@ -799,8 +799,8 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     seen = seeing_views(views, end_points(tip_position, tip_rotation, width), boxes)
     edge = tip_position + np.outer(np.linspace(-0.5, 0.5, 9), width * tip_rotation[:, 1])
     rules = [outline_rule(v, o, xy, edge, boxes) if s_ else "" for s_, v, o, xy in zip(seen, views, observed, origins)]
-    seen = [s_ and bool(r) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
-            for s_, r, v, o, xy in zip(seen, rules, views, observed, origins)]
+    seen = [bool(r) and _continuation_visible(v, boxes, tip_position, tip_rotation, width, o, xy)
+            for r, v, o, xy in zip(rules, views, observed, origins)]
     # Observed tape near the tip that the model leaves unexplained, per view that sees the
     # end: the regions of it that depart from the model beyond a band along its edge
     # (LOCATE_BAND_PX), and how far any of it goes on past the tip.
