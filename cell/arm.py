@@ -115,6 +115,26 @@ class Arm(ABC):
         self._require_connected()
         self._move_linear(target, speed, acceleration)
 
+    def move_linear_path(self, poses: Any, speed: float, acceleration: float, blend: float) -> None:
+        """Straight lines of the flange through ``poses`` (n, 6) in order, without stopping at
+        the intermediate ones: each corner is rounded within ``blend`` m of its pose (a UR's
+        blend radius; 0 stops at every pose), the last pose is reached exactly. ``blend`` must
+        be less than half of every segment, so that two blends never overlap."""
+        try:
+            rows = np.asarray(poses, dtype=float)
+        except (TypeError, ValueError):
+            raise ArmError("path poses are not numeric") from None
+        if rows.ndim != 2 or rows.shape[1] != 6 or len(rows) == 0:
+            raise ArmError(f"path poses have shape {list(rows.shape)}, expected (n, 6) with n >= 1")
+        targets = np.stack([_vector6(r, f"path pose {i + 1}") for i, r in enumerate(rows)])
+        speed = _positive(speed, "speed")
+        acceleration = _positive(acceleration, "acceleration")
+        blend = float(blend)
+        if not np.isfinite(blend) or blend < 0:
+            raise ArmError(f"blend radius must be zero or positive, got {blend}")
+        self._require_connected()
+        self._move_linear_path(targets, speed, acceleration, blend)
+
     def move_joints(self, q: Any, speed: float, acceleration: float) -> None:
         """Joint-space move to ``q`` (6,) rad at ``speed`` rad/s, ``acceleration`` rad/s^2."""
         target = _vector6(q, "target joints")
@@ -163,6 +183,12 @@ class Arm(ABC):
 
     @abstractmethod
     def _move_linear(self, pose: np.ndarray, speed: float, acceleration: float) -> None: ...
+
+    def _move_linear_path(self, poses: np.ndarray, speed: float, acceleration: float, blend: float) -> None:
+        """An arm that cannot blend stops at every pose (``blend`` unused); the real and the
+        simulated arm override this."""
+        for pose in poses:
+            self._move_linear(pose, speed, acceleration)
 
     @abstractmethod
     def _move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None: ...

@@ -20,7 +20,8 @@ HOME_JOINTS = np.array([-1.5708, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])   # th
 
 class FakeArm(Arm):
     """calls: list of (method name, args tuple) in order, e.g.
-    ``("move_linear", (pose6, speed, acceleration))``. Set ``protective_stop_on`` to the
+    ``("move_linear", (pose6, speed, acceleration))`` or ``("move_linear_path", (poses (n, 6),
+    speed, acceleration, blend))``. Set ``protective_stop_on`` to the
     index of a motion (0-based among moves) to have it end in a protective stop."""
 
     name = "fake arm"
@@ -72,6 +73,16 @@ class FakeArm(Arm):
         q = ik_nearest(pose6_to_matrix(pose), self._q)
         if q is None:
             raise ArmError(f"{self.name}: pose {np.round(pose, 4).tolist()} is out of reach")
+        self._q = q
+
+    def _move_linear_path(self, poses: np.ndarray, speed: float, acceleration: float, blend: float) -> None:
+        self.calls.append(("move_linear_path", (poses.copy(), speed, acceleration, blend)))
+        self._begin_move()
+        q = self._q
+        for pose in poses:      # the configuration moveL keeps, pose after pose
+            q = ik_nearest(pose6_to_matrix(pose), q)
+            if q is None:
+                raise ArmError(f"{self.name}: pose {np.round(pose, 4).tolist()} is out of reach")
         self._q = q
 
     def _move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:

@@ -24,8 +24,9 @@ take the tape further back along the estimated end (:data:`EXTRA_INSETS_M`).
 Plan: open; joint move to ``pregrasp`` (``pregrasp_distance`` back along the approach, clear
 of the tape; through ``above``, 150 mm over it, when the direct joint move would sweep the
 wrist or the gripper into the table or the part); linear ``approach`` to ``grasp`` (TCP ``inset`` in from the tip along the
-trunk); close; lift by ``lift`` metres (TCP path length) in linear moves of at most 10 mm
-(``lift_1`` ... ``lift``). Two lift modes:
+trunk); close; lift by ``lift`` metres (TCP path length) through poses at most 10 mm apart
+(``lift_1`` ... ``lift``), one blended linear path (:data:`LIFT_BLEND_M`: the arm does not
+stop between them). Two lift modes:
 
 * "arc" (default): the gripper carries the grasped point on an arc about the line where
   the tape is stuck (its base), turning the base-to-grasp chord towards the vertical; the
@@ -58,7 +59,7 @@ from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import fk, ik_nearest
 from .poses import interpolate_pose6, invert, matrix_to_pose6, pose6_to_matrix
 from .safety import (KeepOutError, SafeArm, SafetyError, SafetyLimits, ToolShape, check_joint_move,
-                     check_linear_move, check_points_flange, check_wrist_clear)
+                     check_linear_move, check_linear_path, check_points_flange, check_wrist_clear)
 
 IK = Callable[[np.ndarray, np.ndarray], "np.ndarray | None"]
 """ik(world_from_flange 4x4, q_near (6,)) -> joints (6,) nearest q_near, or None."""
@@ -119,6 +120,10 @@ it out of the jaw: the "missed" grasps of seeds 400037 and 400177)."""
 MAX_JOINT_STEP_RAD = 0.25      # per ~5 mm of a straight segment: more means a singularity or a flip
 PATH_STEP_M = 0.005
 PLAN_MARGIN_M = 0.001
+LIFT_BLEND_M = 0.002
+"""Blend radius [m] of the lift's path at its intermediate poses (5-10 mm apart, corners of
+a few degrees on an arc): the arm peels in one motion instead of stopping every 10 mm. Less
+than half the shortest segment, as a UR requires (:func:`~cell.safety.check_linear_path`)."""
 """The tool and the wrist keep this much more than the clearance along the planned straight
 moves [m]: executed, the arm's joints differ slightly from the planned IK samples, and each
 straight move is checked again from the pose the arm actually reached (a fresh campaign's
@@ -258,11 +263,25 @@ class Waypoint:
 
 @dataclass(frozen=True)
 class Step:
-    """action: "open_gripper", "close_gripper", "move_joints" or "move_linear"; waypoint:
-    the target's name for moves."""
+    """action: "open_gripper", "close_gripper", "move_joints", "move_linear" or
+    "move_linear_path"; waypoint: the target's name for moves; a path's ``through``: the
+    waypoints it passes first, in order, each corner blended within ``blend`` [m]."""
 
     action: str
     waypoint: str | None = None
+    through: tuple[str, ...] = ()
+    blend: float = 0.0
+
+    @property
+    def targets(self) -> tuple[str, ...]:
+        """The waypoints the step moves to, in order (empty for gripper steps)."""
+        return () if self.waypoint is None else (*self.through, self.waypoint)
+
+    def to_json(self) -> list:
+        """``[action, waypoint]``; a path adds the waypoints it passes and its blend [m]."""
+        if self.action == "move_linear_path":
+            return [self.action, self.waypoint, list(self.through), self.blend]
+        return [self.action, self.waypoint]
 
 
 @dataclass(frozen=True, eq=False)
@@ -301,7 +320,7 @@ class GraspPlan:
                            "tcp_rotation": w.world_from_tcp[:3, :3].tolist(),
                            "flange_pose": w.flange_pose.tolist(), "joints": w.q.tolist()}
                           for w in self.waypoints],
-            "steps": [[s.action, s.waypoint] for s in self.steps],
+            "steps": [s.to_json() for s in self.steps],
             "approach_tilt_deg": float(np.degrees(self.approach_tilt_rad)),
             "approach_pitch_deg": float(np.degrees(self.approach_pitch_rad)),
             "flipped": self.flipped,
@@ -317,11 +336,14 @@ class GraspPlan:
         for s in self.steps:
             if s.waypoint is None:
                 lines.append(f"  {s.action}")
-            else:
-                w = self.waypoint(s.waypoint)
+            if s.through:
+                lines.append(f"  {s.action}: {len(s.targets)} poses, corners blended within {s.blend * 1e3:g} mm")
+            for name in s.targets:
+                w = self.waypoint(name)
                 p = w.world_from_tcp[:3, 3] * 1000
                 f = ", ".join(f"{v:.4f}" for v in w.flange_pose)
-                lines.append(f"  {s.action:<12} {w.name:<9} TCP [{p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}] mm"
+                action = "  through" if s.through else s.action
+                lines.append(f"  {action:<12} {w.name:<9} TCP [{p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}] mm"
                              f"  flange [{f}]")
         return "\n".join(lines)
 
@@ -605,8 +627,9 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
         w = via[name]
         waypoints = (Waypoint(name, w["world_from_tcp"], w["flange"], w["q"]),) + waypoints
         first = (Step("move_joints", name),) + first
-    steps = (Step("open_gripper"), *first, Step("move_linear", "grasp"),
-             Step("close_gripper"), *(Step("move_linear", k) for k in lift_names))
+    lift_step = (Step("move_linear_path", lift_names[-1], tuple(lift_names[:-1]), LIFT_BLEND_M)
+                 if len(lift_names) > 1 else Step("move_linear", lift_names[-1]))
+    steps = (Step("open_gripper"), *first, Step("move_linear", "grasp"), Step("close_gripper"), lift_step)
     lift_vector = lifts[-1][:3, 3] - grasp_position
     return GraspPlan(waypoints, steps, tip, float(tilt), bool(flipped), points,
                      lift_vector / max(np.linalg.norm(lift_vector), 1e-12), shape, float(pitch))
@@ -924,11 +947,11 @@ def _precheck(plan: GraspPlan, limits: SafetyLimits, speeds: Speeds) -> None:
     for step in plan.steps:
         if step.waypoint is None:
             continue
-        target = plan.waypoint(step.waypoint).flange_pose
-        start = target if previous is None or step.action == "move_joints" else previous
-        check_linear_move(limits, start, target, speeds.approach, speeds.linear_accel, plan.points_flange,
-                          plan.shape)
-        previous = target
+        targets = [plan.waypoint(name).flange_pose for name in step.targets]
+        start = targets[0] if previous is None or step.action == "move_joints" else previous
+        check_linear_path(limits, start, targets, speeds.approach, speeds.linear_accel, step.blend,
+                          plan.points_flange, plan.shape)
+        previous = targets[-1]
 
 
 def _run_step(arm: Arm, plan: GraspPlan, step: Step, speeds: Speeds) -> None:
@@ -941,5 +964,9 @@ def _run_step(arm: Arm, plan: GraspPlan, step: Step, speeds: Speeds) -> None:
     elif step.action == "move_linear":
         speed = speeds.lift if step.waypoint.startswith("lift") else speeds.approach
         arm.move_linear(plan.waypoint(step.waypoint).flange_pose, speed, speeds.linear_accel)
+    elif step.action == "move_linear_path":
+        speed = speeds.lift if step.waypoint.startswith("lift") else speeds.approach
+        arm.move_linear_path([plan.waypoint(name).flange_pose for name in step.targets], speed,
+                             speeds.linear_accel, step.blend)
     else:
         raise ArmError(f"unknown plan step '{step.action}'")

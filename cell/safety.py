@@ -507,6 +507,34 @@ def check_linear_move(limits: SafetyLimits, start_pose: Any, target_pose: Any, s
             check_wrist_clear(limits, line_joints(T[::max(len(T) // 20, 1)], q_start), "linear move")
 
 
+def check_linear_path(limits: SafetyLimits, start_pose: Any, poses: Any, speed: float, acceleration: float,
+                      blend: float, points_flange: np.ndarray | None = None, shape: ToolShape | None = None,
+                      q_start: Any = None) -> None:
+    """Raise :class:`SafetyError` unless a blended ``moveL`` path of the flange from
+    ``start_pose`` through ``poses`` (n, 6) passes :func:`check_linear_move` segment by
+    segment and its ``blend`` radius [m] is less than half of every segment (a UR refuses
+    overlapping blends; the last pose is reached exactly). A blend rounds a corner inside
+    the triangle of its two segments, within ``blend`` of the corner's pose: on the lift's
+    nearly straight paths (corners of a few degrees) it leaves the checked segments by less
+    than 0.1 mm, well inside the clearance."""
+    from .kinematics import ik_nearest
+
+    rows = np.asarray(poses, float).reshape(-1, 6)
+    previous = np.asarray(start_pose, float)
+    q = None if q_start is None else np.asarray(q_start, float)
+    for i, target in enumerate(rows):
+        check_linear_move(limits, previous, target, speed, acceleration, points_flange, shape, q)
+        if blend > 0 and i < len(rows) - 1:
+            shortest = min(np.linalg.norm(target[:3] - previous[:3]), np.linalg.norm(rows[i + 1, :3] - target[:3]))
+            if not blend < 0.5 * shortest:
+                raise SafetyError(f"linear path: blend radius {blend * 1e3:g} mm at pose {i + 1} is not less than "
+                                  f"half of its shorter segment ({shortest * 1e3:.1f} mm)")
+        if q is not None:
+            q_next = ik_nearest(pose6_to_matrix(target), q)
+            q = q if q_next is None else q_next
+        previous = target
+
+
 def line_joints(world_from_flange: np.ndarray, q_start: Any) -> np.ndarray:
     """(n, 6) joints along flange poses (n, 4, 4), each the IK solution nearest the last
     (the configuration ``moveL`` keeps); poses without a solution are left out (the arm's
@@ -613,6 +641,12 @@ class SafeArm(Arm):
         check_linear_move(self.limits, self.arm.tcp_pose(), pose, speed, acceleration, self.points_flange,
                           self.shape, q_now)
         self.arm.move_linear(pose, speed, acceleration)
+
+    def _move_linear_path(self, poses: np.ndarray, speed: float, acceleration: float, blend: float) -> None:
+        q_now = self.arm.joints() if self.limits.obstacles else None
+        check_linear_path(self.limits, self.arm.tcp_pose(), poses, speed, acceleration, blend, self.points_flange,
+                          self.shape, q_now)
+        self.arm.move_linear_path(poses, speed, acceleration, blend)
 
     def _move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:
         check_joint_move(self.limits, self.arm.joints(), q, speed, acceleration, self.points_flange,

@@ -20,6 +20,9 @@ simulator and the tests never need a robot or the library. Facts this driver is 
   after the arm was told to stop.
 * Connecting or reconnecting after a protective stop often needs a retry or two: both
   are retried a bounded number of times, each preceded by a probe.
+* A path (the lift) is one ``moveL(path)`` call, rows ``[x, y, z, rx, ry, rz, speed,
+  acceleration, blend]`` with the last blend 0, so the arm does not stop between its
+  poses; every pose is checked as a single move's target is.
 * After ``servoL``/``speedL`` a ``moveL`` is ignored until ``servoStop``/``speedStop``: both
   are sent before every move.
 * A motion that raises (or is interrupted, or returns False) is followed by ``stopL`` /
@@ -59,7 +62,8 @@ from tapecell.estimator.errors import TapecellError
 from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import fk, ik_nearest
 from .poses import matrix_to_pose6, pose6_to_matrix, rotation_angle_between
-from .safety import SafetyError, SafetyLimits, ToolShape, check_joint_move, check_linear_move, check_points_flange
+from .safety import (SafetyError, SafetyLimits, ToolShape, check_joint_move, check_linear_move, check_linear_path,
+                     check_points_flange)
 from .ur_link import LinkCallError, LinkLost, LinkTimeout, ProcessLink
 
 RTDE_PORT = 30004
@@ -421,6 +425,40 @@ class URArm(Arm):
         path = np.linalg.norm(b[:3, 3] - a[:3, 3]) + TOOL_REACH_M * rotation_angle_between(a[:3, :3], b[:3, :3])
         deadline = path / speed + speed / acceleration + self.move_margin_s
         self._run("moveL", [target, speed, acceleration], deadline, self._stop_linear, f"moveL to {_fmt(target)}")
+
+    def _move_linear_path(self, poses: np.ndarray, speed: float, acceleration: float, blend: float) -> None:
+        """One ``moveL(path)`` through ``poses``: rows ``[x, y, z, rx, ry, rz, speed,
+        acceleration, blend]``, the last with blend 0 (the controller stops there). Every
+        pose is checked as a single move's target is, before anything is sent."""
+        self._ensure_link()
+        self._refuse_if_protective_stopped()
+        start = self._receive("getActualTCPPose")
+        q_now = np.asarray(self._receive("getActualQ"), float) if self.check_kinematics or self.limits.obstacles else None
+        check_linear_path(self.limits, start, poses, speed, acceleration, blend, self.points_flange, self.shape, q_now)
+        targets = [[float(v) for v in pose] for pose in poses]
+        if self.check_kinematics:
+            q = q_now
+            for target in targets:
+                self._check_ik(target, q)
+                q_next = ik_nearest(pose6_to_matrix(target), q)
+                q = q if q_next is None else q_next
+        for target in targets:
+            if not self._call("control", "isPoseWithinSafetyLimits", target):
+                raise SafetyError(f"{self.name}: the controller says pose {_fmt(target)} is outside its "
+                                  "safety limits or unreachable")
+        self._call("control", "servoStop")
+        self._call("control", "speedStop")
+        self._last_motion = "linear"
+        rows = [target + [float(speed), float(acceleration), float(blend) if i < len(targets) - 1 else 0.0]
+                for i, target in enumerate(targets)]
+        path, a = 0.0, pose6_to_matrix(start)
+        for target in targets:
+            b = pose6_to_matrix(target)
+            path += np.linalg.norm(b[:3, 3] - a[:3, 3]) + TOOL_REACH_M * rotation_angle_between(a[:3, :3], b[:3, :3])
+            a = b
+        deadline = path / speed + speed / acceleration + self.move_margin_s
+        self._run("moveL", [rows], deadline, self._stop_linear,
+                  f"moveL path of {len(rows)} poses to {_fmt(targets[-1])}")
 
     def _move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:
         self._ensure_link()

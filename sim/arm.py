@@ -137,7 +137,23 @@ class SimArm:
         """Move the TCP along a straight line (position) and a slerp (orientation) to
         ``pose`` at ``speed`` m/s (rotation at most 1 rad/s), as moveL does; IK is solved
         along the way. Returns the joints reached."""
-        target = as_matrix(pose)
+        return self._wait(self._stream_tcp(as_matrix(pose), speed, tool), settle_s)
+
+    def move_tcp_path(self, poses, speed: float = 0.1, tool: str | None = None, settle_s: float = 1.0) -> np.ndarray:
+        """Move the TCP through ``poses`` in order, each leg as :meth:`move_tcp`, without
+        settling between them (as a UR's blended ``moveL`` path: the servos' lag rounds the
+        corners); settles at the last. Returns the joints reached."""
+        targets = [as_matrix(p) for p in poses]
+        if not targets:
+            raise SimArmError("a path needs at least one pose")
+        q_goal = self.cell.arm_ctrl.copy()
+        for target in targets:
+            q_goal = self._stream_tcp(target, speed, tool)
+        return self._wait(q_goal, settle_s)
+
+    def _stream_tcp(self, target: np.ndarray, speed: float, tool: str | None) -> np.ndarray:
+        """Stream the servo targets of a straight TCP move from the commanded pose to
+        ``target`` (4x4), one per physics step; returns the target's joints (not waited for)."""
         start = self.fk(self.cell.arm_ctrl.copy(), tool)
         q_goal = self.ik(target, tool, self.cell.arm_ctrl.copy())  # fail before moving
         dist = np.linalg.norm(target[:3, 3] - start[:3, 3])
@@ -158,7 +174,7 @@ class SimArm:
             # the waypoint's IK first, then its steps (an unreachable waypoint stops the arm there)
             self.cell.step_targets(self.cell.arm_ctrl, q_prev + (q_next - q_prev) * _WAYPOINT_FRACTIONS)
             q_prev = q_next
-        return self._wait(q_goal, settle_s)
+        return q_goal
 
     def set_joints(self, q) -> np.ndarray:
         """Place the arm exactly at joints ``q`` [rad] (servo targets too) without simulating

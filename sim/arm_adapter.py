@@ -7,6 +7,8 @@ Differences from the real arm, and why:
   on the real arm.
 * The simulated moves run at the commanded speed with the acceleration implicit in its
   position servos; ``acceleration`` is validated (and checked by SafeArm) but not used.
+  A linear path runs its legs back to back, settling only at the last pose: the servos'
+  lag rounds the corners, as the blend radius does on a UR (``blend`` is checked, not used).
 * A move whose joints do not arrive (the arm blocked by contact) is what a real arm
   reports as a protective stop: the adapter raises :class:`ProtectiveStopError` and
   reports ``is_protective_stopped()`` True until :meth:`SimArmAdapter.clear_protective_stop`.
@@ -91,6 +93,13 @@ class SimArmAdapter(Arm):
         else:
             self._guarded(lambda: self.sim_arm.move_tcp(world_from_flange, speed=speed, tool="flange"),
                           "linear move")
+
+    def _move_linear_path(self, poses: np.ndarray, speed: float, acceleration: float, blend: float) -> None:
+        targets = [pose6_to_matrix(p) for p in poses]
+        if self.teleport:
+            self._guarded(lambda: self.sim_arm.set_joints(self.sim_arm.ik(targets[-1], "flange")), "linear path")
+        else:
+            self._guarded(lambda: self.sim_arm.move_tcp_path(targets, speed=speed, tool="flange"), "linear path")
 
     def _move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:
         if self.teleport:

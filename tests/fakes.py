@@ -93,16 +93,29 @@ def install_fake_rtde(monkeypatch, robot: FakeRobot, probe: bool = True) -> None
             robot.log.append(("isJointsWithinSafetyLimits", q))
             return True
 
-        def moveL(self, pose, speed, acceleration):
-            robot.log.append(("moveL", pose, speed, acceleration))
+        def moveL(self, *args):
+            # ur_rtde's two overloads: moveL(pose, speed, acceleration) and moveL(path), the
+            # path's rows [x, y, z, rx, ry, rz, speed, acceleration, blend], the last blend 0.
+            if len(args) == 1:
+                (path,) = args
+                assert isinstance(path, list) and path and all(
+                    isinstance(r, list) and len(r) == 9 and all(type(v) is float for v in r) for r in path), path
+                assert path[-1][8] == 0.0 and all(r[8] >= 0.0 for r in path), "the last pose of a path is not blended"
+                robot.log.append(("moveL", path))
+                poses = [r[:6] for r in path]
+            else:
+                pose, speed, acceleration = args
+                robot.log.append(("moveL", pose, speed, acceleration))
+                poses = [pose]
             if robot.move_blocks is not None:
                 robot.move_blocks.wait()
             if robot.move_raises:
                 raise robot.move_raises
             if robot.move_result:
-                q = ik_nearest(pose6_to_matrix(pose) @ invert(robot.calibration), robot.q)
-                if q is not None:
-                    robot.q = q
+                for pose in poses:
+                    q = ik_nearest(pose6_to_matrix(pose) @ invert(robot.calibration), robot.q)
+                    if q is not None:
+                        robot.q = q
             return robot.move_result
 
         def moveJ(self, q, speed, acceleration):

@@ -41,6 +41,28 @@ def test_adapter_is_an_arm_reporting_flange_poses(sim):
             arm.freedrive(True)
 
 
+def test_a_path_does_not_stop_at_its_intermediate_poses(sim):
+    # The same 4 poses 10 mm apart, as one path and as four moves: both end at the last
+    # pose; the path takes less simulated time (no settling at the three corners).
+    cfg, cell, sim_arm = sim
+    elapsed, ends = [], []
+    for as_path in (True, False):
+        cell.reset(3)
+        with SimArmAdapter(sim_arm) as arm:
+            start = arm.tcp_pose()
+            path = [start + np.array([0.0, 0.0, 0.01 * k, 0.0, 0.0, 0.0]) for k in (1, 2, 3, 4)]
+            t0 = cell.data.time
+            if as_path:
+                arm.move_linear_path(path, 0.05, 0.8, 0.002)
+            else:
+                for pose in path:
+                    arm.move_linear(pose, 0.05, 0.8)
+            elapsed.append(cell.data.time - t0)
+            ends.append(pose_distance(arm.tcp_pose(), path[-1]))
+    assert all(d < 0.001 and a < 0.01 for d, a in ends)
+    assert 0.8 <= elapsed[0] < elapsed[1] - 0.1, elapsed      # 40 mm at 50 mm/s, then the last settling
+
+
 def test_safety_refusal_leaves_the_simulated_arm_still(sim):
     cfg, cell, sim_arm = sim
     cell.reset(3)

@@ -165,6 +165,38 @@ def test_move_linear_sends_exact_pose_after_servo_and_speed_stop(robot, rtde_ser
     assert robot.log[-3:] == [("control.disconnect",), ("receive.disconnect",), ("io.disconnect",)]
 
 
+def test_move_linear_path_is_one_blended_move_l_after_every_pose_is_checked(robot, rtde_server):
+    start = matrix_to_pose6(fk(Q_START))
+    path = [start + np.array([0.0, 0.0, 0.01 * k, 0.0, 0.0, 0.0]) for k in (1, 2, 3)]
+    with make_arm(rtde_server.port) as arm:
+        with pytest.raises(SafetyError, match="blend"):
+            arm.move_linear_path(path, 0.05, 0.8, 0.006)       # overlapping blends: nothing sent
+        assert motion_calls(robot) == []
+        arm.move_linear_path(path, 0.05, 0.8, 0.002)
+    calls = motion_calls(robot)
+    assert [c[0] for c in calls] == ["isPoseWithinSafetyLimits"] * 3 + ["servoStop", "speedStop", "moveL"]
+    for call, pose in zip(calls, path):
+        np.testing.assert_allclose(call[1], pose, atol=1e-12)
+    # ur_rtde's moveL(path): rows [x, y, z, rx, ry, rz, speed, acceleration, blend], the last unblended.
+    (_, rows) = calls[-1]
+    assert [r[6:] for r in rows] == [[0.05, 0.8, 0.002], [0.05, 0.8, 0.002], [0.05, 0.8, 0.0]]
+    np.testing.assert_allclose([r[:6] for r in rows], path, atol=1e-12)
+    # The controller's inverse kinematics of every pose was checked before the move.
+    iks = [c[1] for c in robot.log if c[0] == "getInverseKinematics"]
+    np.testing.assert_allclose(iks[-3:], path, atol=1e-12)
+
+
+def test_a_failed_path_is_stopped(robot, rtde_server):
+    robot.move_raises = RuntimeError("fake: RTDE link dropped mid-move")
+    start = matrix_to_pose6(fk(Q_START))
+    path = [start + np.array([0.0, 0.0, 0.01 * k, 0.0, 0.0, 0.0]) for k in (1, 2)]
+    arm = make_arm(rtde_server.port, stop_deceleration=3.0)
+    arm.connect()
+    with pytest.raises(ArmError, match="moveL path of 2 poses to .* failed: fake: RTDE link dropped"):
+        arm.move_linear_path(path, 0.05, 0.8, 0.002)
+    assert robot.log[-1] == ("stopL", 3.0)
+
+
 def test_move_joints_exact_call(robot, rtde_server):
     q = Q_START + np.array([0.1, -0.05, 0.05, 0.0, 0.0, 0.2])
     with make_arm(rtde_server.port) as arm:

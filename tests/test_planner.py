@@ -9,7 +9,7 @@ import pytest
 from tapecell.cell.arm import ProtectiveStopError
 from tapecell.cell.fake_arm import FakeArm
 from tapecell.cell.kinematics import fk
-from tapecell.cell.planner import (REFERENCE_JOINTS, GraspParams, GripperGeometry, PlanRefused, Speeds, Step, TipFrame,
+from tapecell.cell.planner import (LIFT_BLEND_M, REFERENCE_JOINTS, GraspParams, GripperGeometry, PlanRefused, Speeds, Step, TipFrame,
                           execute_plan, plan_grasp)
 from tapecell.cell.poses import pose6_to_matrix, pose_distance
 from tapecell.cell.safety import SafetyError, SafetyLimits
@@ -80,7 +80,10 @@ def test_grasp_geometry_pads_straddle_the_normal_inset_from_the_tip():
         if chord[2] < np.cos(PARAMS.lift / radius):
             assert lifts[-1][2] > grasp[2, 3] + 0.005
         assert [s.action for s in plan.steps][:4] == ["open_gripper", "move_joints", "move_linear", "close_gripper"]
-        assert [s.waypoint for s in plan.steps[4:]] == [w.name for w in plan.waypoints[2:]]
+        # The lift is one blended path through every lift pose (the arm does not stop).
+        assert plan.steps[4:] == (Step("move_linear_path", "lift", ("lift_1", "lift_2", "lift_3", "lift_4"),
+                                       LIFT_BLEND_M),)
+        assert list(plan.steps[4].targets) == [w.name for w in plan.waypoints[2:]]
         assert plan.steps[-1].waypoint == "lift"
     assert planned >= 20
 
@@ -181,7 +184,11 @@ def test_execute_plan_on_the_fake_arm_reaches_every_waypoint():
         assert max(pose_distance(arm.tcp_pose(), plan.waypoint("lift").flange_pose)) < 1e-6
     assert done == list(plan.steps) and len(seen) == len(plan.steps)
     assert arm.call_names() == ["connect", "open_gripper", "move_joints", "move_linear", "close_gripper",
-                                *["move_linear"] * (len(plan.steps) - 4), "disconnect"]
+                                "move_linear_path", "disconnect"]
+    _, (poses, speed, acc, blend) = arm.calls[5]
+    np.testing.assert_allclose(poses, [plan.waypoint(n).flange_pose for n in ("lift_1", "lift_2", "lift_3",
+                                                                            "lift_4", "lift")])
+    assert (speed, acc, blend) == (Speeds().lift, Speeds().linear_accel, LIFT_BLEND_M)
     _, (pose, speed, acc) = arm.calls[3]
     np.testing.assert_allclose(pose, plan.waypoint("grasp").flange_pose)
     assert speed <= LIMITS.max_tcp_speed and acc <= LIMITS.max_tcp_accel
@@ -334,7 +341,7 @@ def test_an_end_hanging_beside_the_parts_face_is_taken_further_back_from_above(m
     # ... with planner.PLAN_MARGIN_M to spare: executed, each straight move is checked again
     # from the pose the arm actually reached (fresh 941160: planned at 5.0 mm, stopped at 4.99).
     planned = dataclasses.replace(limits, clearance=limits.clearance + planner.PLAN_MARGIN_M)
-    linear = [s.waypoint for s in plan.steps if s.action == "move_linear"]
+    linear = [n for s in plan.steps if s.action.startswith("move_linear") for n in s.targets]
     previous = "pregrasp"
     for name in linear:
         check_linear_move(planned, plan.waypoint(previous).flange_pose, plan.waypoint(name).flange_pose,

@@ -125,12 +125,22 @@ def test_execute_sends_exactly_the_plan_after_confirmation(real_like, monkeypatc
             expected.append(("moveJ", plan.waypoint(step.waypoint).q))
         elif step.action == "move_linear":
             expected.append(("moveL", plan.waypoint(step.waypoint).flange_pose))
+        elif step.action == "move_linear_path":      # the lift: one moveL(path), not a stop every 10 mm
+            expected.append(("moveL", [plan.waypoint(n).flange_pose for n in step.targets], step.blend))
         else:
             expected.append(("setStandardDigitalOut", step.action))
     assert len(expected) >= 5 and [m[0] for m in motions] == [e[0] for e in expected]
     limits = load_cell_config().limits
+    assert sum(len(m) == 2 for m in motions if m[0] == "moveL") == 1          # the lift's one path
     for m, e in zip(motions, expected):
-        if m[0] == "moveL":
+        if m[0] == "moveL" and len(m) == 2:
+            path = np.array(m[1])
+            assert len(e) == 3 and path.shape == (len(e[1]), 9)
+            assert np.allclose(path[:, :6], e[1], atol=1e-9)
+            assert np.all((0 < path[:, 6]) & (path[:, 6] <= limits.max_tcp_speed))
+            assert np.all((0 < path[:, 7]) & (path[:, 7] <= limits.max_tcp_accel))
+            assert np.all(path[:-1, 8] == e[2]) and path[-1, 8] == 0.0
+        elif m[0] == "moveL":
             assert np.allclose(m[1], e[1], atol=1e-9)
             assert 0 < m[2] <= limits.max_tcp_speed and 0 < m[3] <= limits.max_tcp_accel
         elif m[0] == "moveJ":
@@ -149,7 +159,9 @@ def test_execute_sends_exactly_the_plan_after_confirmation(real_like, monkeypatc
             assert fk_calls and np.allclose(fk_calls[-1][1], call[1]) and fk_calls[-1][2] == [0.0] * 6
         if call[0] == "moveL":
             ik_calls = [c for c in robot.log[:i] if c[0] == "getInverseKinematics"]
-            assert ik_calls and np.allclose(ik_calls[-1][1], call[1])
+            targets = [r[:6] for r in call[1]] if len(call) == 2 else [call[1]]
+            assert len(ik_calls) >= len(targets)
+            assert np.allclose([c[1] for c in ik_calls[-len(targets):]], targets)
     assert "grasp executed" in out
 
 

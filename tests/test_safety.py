@@ -6,6 +6,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from tapecell.cell.arm import ArmError
 from tapecell.cell.fake_arm import FakeArm
 from tapecell.cell.kinematics import fk
 from tapecell.cell.poses import pose6_to_matrix
@@ -132,6 +133,32 @@ def test_safe_arm_sends_nothing_on_a_violation():
         assert moves(arm) == ["move_linear"]
         np.testing.assert_allclose(arm.calls[-1][1][0], start + [0.02, 0.0, -0.01, 0, 0, 0])
     assert arm.call_names()[-1] == "disconnect"
+
+
+def test_safe_arm_checks_every_segment_and_the_blend_of_a_path():
+    arm = FakeArm(q0=Q0)
+    safe = SafeArm(arm, LIMITS, flange_from_tool=GRIPPER)
+    with safe:
+        start = safe.tcp_pose()
+        up = np.array([0, 0, 0.01, 0, 0, 0])
+        path = [start + up, start + 2 * up, start + 3 * up]
+        # A middle pose out of the workspace: the straight legs either side of it leave it.
+        with pytest.raises(SafetyError, match="workspace"):
+            safe.move_linear_path([path[0], start + [0, 0, 0.5, 0, 0, 0], path[2]], 0.05, 0.5, 0.002)
+        # Blends that would overlap (a UR refuses them): 6 mm against 10 mm segments.
+        with pytest.raises(SafetyError, match="blend radius 6 mm at pose 1"):
+            safe.move_linear_path(path, 0.05, 0.5, 0.006)
+        with pytest.raises(SafetyError, match="speed"):
+            safe.move_linear_path(path, 1.0, 0.5, 0.002)
+        with pytest.raises(ArmError, match="blend"):
+            safe.move_linear_path(path, 0.05, 0.5, -0.001)
+        assert moves(arm) == []
+        safe.move_linear_path(path, 0.05, 0.5, 0.002)
+        assert moves(arm) == ["move_linear_path"]
+        poses, speed, acc, blend = arm.calls[-1][1]
+        np.testing.assert_allclose(poses, path)
+        assert (speed, acc, blend) == (0.05, 0.5, 0.002)
+        np.testing.assert_allclose(safe.tcp_pose(), path[-1], atol=1e-9)
 
 
 def test_safe_arm_stops_the_inner_arm_when_the_block_fails():

@@ -455,8 +455,7 @@ def _check_same_plan(shown, plan) -> None:
     """Refuse to run a plan other than the one the operator confirmed."""
     from tapecell.cell.poses import rotation_angle_between
 
-    steps = [(s.action, s.waypoint) for s in shown.steps]
-    if steps != [(s.action, s.waypoint) for s in plan.steps]:
+    if list(shown.steps) != list(plan.steps):
         raise TaskFailed("the plan made from the arm's actual joints has other steps than the one you confirmed; "
                          "nothing moved (run again to see and confirm the new plan)")
     for a, b in zip(shown.waypoints, plan.waypoints):
