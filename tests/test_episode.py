@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -165,7 +166,6 @@ def test_failures_are_blamed_on_a_stage():
 
 def test_episode_estimates_with_the_cameras_file_the_cell_file_names(tmp_path, capsys):
     """[episode] cameras_file: a wrong calibration must show in the estimate."""
-    import re
 
     import numpy as np
 
@@ -526,14 +526,24 @@ def test_the_held_point_is_found_and_followed_along_the_centre_line():
     assert held.lag(slid, up) == pytest.approx(0.01)
 
 
-@pytest.mark.parametrize("seed, cameras", [(915040, 2), (911062, 3)])
-def test_a_grasp_succeeds_where_the_tape_between_the_pads_follows_the_gripper(seed, cameras, capsys):
-    """Two fresh episodes that acted: 915040 took the tape 48 mm back from its end, and held
-    it through the lift (the tape between the pads followed the gripper within ~1.3 mm) while
-    the free end beyond the jaw swung 11.4 mm (7.9 mm since the needle measures the end's
-    frame, 0.4 mm at the pads); 911062 closed across the tape's end, and the tape slid out of
-    the pads on the lift (10.6 mm behind). Only the second slipped."""
-    code = main(["episode", "--seed", str(seed), "--cameras", str(cameras)])
+@pytest.mark.parametrize("seed, cameras, friction", [(915040, 2, None), (911062, 3, 0.1)])
+def test_a_grasp_succeeds_where_the_tape_between_the_pads_follows_the_gripper(seed, cameras, friction, capsys,
+                                                                            tmp_path):
+    """915040 takes the tape 48 mm back from its end and holds it through the lift (the tape
+    between the pads follows the gripper within ~1.3 mm) while the free end beyond the jaw
+    swings 11.4 mm (7.9 mm since the needle measures the end's frame, 0.4 mm at the pads).
+    911062 closes across the tape's end: with the cell file's friction it holds (its tape
+    slid 10.6 mm out of the pads while the lift stopped every 10 mm; 5.8 mm since the lift is
+    one blended path), with the pads and the tape at friction 0.1 the tape slides out of
+    the pads on the lift. Only that one slipped."""
+    args = ["episode", "--seed", str(seed), "--cameras", str(cameras)]
+    if friction is not None:
+        slippery = tmp_path / "slippery.toml"
+        text, n = re.subn(r"(?m)^friction = [0-9.]+", f"friction = {friction}", default_cell_path().read_text())
+        assert n == 2                                   # the tape's and the gripper's pads'
+        slippery.write_text(text)
+        args += ["--config", str(slippery)]
+    code = main(args)
     doc = json.loads(capsys.readouterr().out)
     assert code == (0 if seed == 915040 else 1)   # 1: the task itself failed
     if seed == 915040:
