@@ -120,15 +120,15 @@ it out of the jaw: the "missed" grasps of seeds 400037 and 400177)."""
 MAX_JOINT_STEP_RAD = 0.25      # per ~5 mm of a straight segment: more means a singularity or a flip
 PATH_STEP_M = 0.005
 PLAN_MARGIN_M = 0.001
-LIFT_BLEND_M = 0.002
-"""Blend radius [m] of the lift's path at its intermediate poses (5-10 mm apart, corners of
-a few degrees on an arc): the arm peels in one motion instead of stopping every 10 mm. Less
-than half the shortest segment, as a UR requires (:func:`~cell.safety.check_linear_path`)."""
 """The tool and the wrist keep this much more than the clearance along the planned straight
 moves [m]: executed, the arm's joints differ slightly from the planned IK samples, and each
 straight move is checked again from the pose the arm actually reached (a fresh campaign's
 plan passed the wrist at 5.0 mm and was stopped at 4.9; fresh 941160's left finger, planned
 at 5.0 mm from the part, was stopped at 4.99 on the approach)."""
+LIFT_BLEND_M = 0.002
+"""Blend radius [m] of the lift's path at its intermediate poses (5-10 mm apart, corners of
+a few degrees on an arc): the arm peels in one motion instead of stopping every 10 mm. Less
+than half the shortest segment, as a UR requires (:func:`~cell.safety.check_linear_path`)."""
 
 
 class PlanRefused(TaskFailed):
@@ -342,7 +342,7 @@ class GraspPlan:
                 w = self.waypoint(name)
                 p = w.world_from_tcp[:3, 3] * 1000
                 f = ", ".join(f"{v:.4f}" for v in w.flange_pose)
-                action = "  through" if s.through else s.action
+                action = s.action if not s.through else "  to" if name == s.waypoint else "  through"
                 lines.append(f"  {action:<12} {w.name:<9} TCP [{p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}] mm"
                              f"  flange [{f}]")
         return "\n".join(lines)
