@@ -118,8 +118,9 @@ class Arm(ABC):
     def move_linear_path(self, poses: Any, speed: float, acceleration: float, blend: float) -> None:
         """Straight lines of the flange through ``poses`` (n, 6) in order, without stopping at
         the intermediate ones: each corner is rounded within ``blend`` m of its pose (a UR's
-        blend radius; 0 stops at every pose), the last pose is reached exactly. ``blend`` must
-        be less than half of every segment, so that two blends never overlap."""
+        blend radius; 0 stops at every pose), the last pose is reached exactly. A blend of
+        half a leg or more would overlap the next: :class:`~cell.safety.SafeArm` and the real
+        arm refuse it (:func:`~cell.safety.check_blends`)."""
         try:
             rows = np.asarray(poses, dtype=float)
         except (TypeError, ValueError):
@@ -185,8 +186,8 @@ class Arm(ABC):
     def _move_linear(self, pose: np.ndarray, speed: float, acceleration: float) -> None: ...
 
     def _move_linear_path(self, poses: np.ndarray, speed: float, acceleration: float, blend: float) -> None:
-        """An arm that cannot blend stops at every pose (``blend`` unused); the real and the
-        simulated arm override this."""
+        """Without blending: a linear move to each pose in turn (``blend`` unused). Every arm
+        here overrides it; an arm added later that cannot blend still runs a path safely."""
         for pose in poses:
             self._move_linear(pose, speed, acceleration)
 

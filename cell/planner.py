@@ -59,7 +59,8 @@ from .arm import Arm, ArmError, ProtectiveStopError
 from .kinematics import fk, ik_nearest
 from .poses import interpolate_pose6, invert, matrix_to_pose6, pose6_to_matrix
 from .safety import (KeepOutError, SafeArm, SafetyError, SafetyLimits, ToolShape, check_joint_move,
-                     check_linear_move, check_linear_path, check_points_flange, check_wrist_clear)
+                     check_blends, check_linear_move, check_linear_path, check_points_flange,
+                     check_wrist_clear)
 
 IK = Callable[[np.ndarray, np.ndarray], "np.ndarray | None"]
 """ik(world_from_flange 4x4, q_near (6,)) -> joints (6,) nearest q_near, or None."""
@@ -126,9 +127,10 @@ straight move is checked again from the pose the arm actually reached (a fresh c
 plan passed the wrist at 5.0 mm and was stopped at 4.9; fresh 941160's left finger, planned
 at 5.0 mm from the part, was stopped at 4.99 on the approach)."""
 LIFT_BLEND_M = 0.002
-"""Blend radius [m] of the lift's path at its intermediate poses (5-10 mm apart, corners of
-a few degrees on an arc): the arm peels in one motion instead of stopping every 10 mm. Less
-than half the shortest segment, as a UR requires (:func:`~cell.safety.check_linear_path`)."""
+"""Blend radius [m] of the lift's path at its intermediate poses (5-10 mm apart): the arm
+peels in one motion instead of stopping every 10 mm. Less than half the shortest leg, as a
+UR requires; each blended corner's chord is checked as a straight move
+(:func:`~cell.safety.check_blends`)."""
 
 
 class PlanRefused(TaskFailed):
@@ -329,7 +331,8 @@ class GraspPlan:
         }
 
     def describe(self) -> str:
-        """Human-readable plan, one line a step (what ``tapecell run`` shows before moving)."""
+        """Human-readable plan, one line a step and a path's poses a line each (what ``tapecell
+        run`` shows before moving)."""
         pitch = f", pitch {np.degrees(self.approach_pitch_rad):+.0f} deg" if self.approach_pitch_rad else ""
         lines = [f"grasp plan (approach tilt {np.degrees(self.approach_tilt_rad):+.0f} deg{pitch}"
                  f"{', jaw turned' if self.flipped else ''}):"]
@@ -627,6 +630,13 @@ def _plan_variant(tip, grasp_position, tape_base, tilt, flipped, params, gripper
         w = via[name]
         waypoints = (Waypoint(name, w["world_from_tcp"], w["flange"], w["q"]),) + waypoints
         first = (Step("move_joints", name),) + first
+    if len(lift_names) > 1:
+        try:
+            # The lift's legs were checked above; its blends (each corner's chord) too.
+            check_blends(planned, flange["grasp"], [flange[k] for k in lift_names], limits.max_tcp_speed,
+                         limits.max_tcp_accel, LIFT_BLEND_M, points, shape)
+        except SafetyError as e:
+            raise PlanRefused("collision" if isinstance(e, KeepOutError) else "limits", str(e)) from None
     lift_step = (Step("move_linear_path", lift_names[-1], tuple(lift_names[:-1]), LIFT_BLEND_M)
                  if len(lift_names) > 1 else Step("move_linear", lift_names[-1]))
     steps = (Step("open_gripper"), *first, Step("move_linear", "grasp"), Step("close_gripper"), lift_step)

@@ -122,6 +122,16 @@ def interpolate_pose6(start: Any, end: Any, n: int) -> np.ndarray:
     return np.concatenate([positions, slerp(s).as_rotvec()], axis=1)
 
 
+def interpolate_pose6_at(start: Any, end: Any, s: float) -> np.ndarray:
+    """(6,) the pose a fraction ``s`` (0-1) along the straight line from ``start`` to ``end``,
+    as :func:`interpolate_pose6` samples it (position linear, orientation by slerp)."""
+    a, b = as_pose6(start, "start pose"), as_pose6(end, "end pose")
+    from scipy.spatial.transform import Slerp
+
+    slerp = Slerp([0.0, 1.0], Rotation.from_rotvec(np.stack([a[3:], b[3:]])))
+    return np.concatenate([a[:3] + float(s) * (b[:3] - a[:3]), slerp([float(s)]).as_rotvec()[0]])
+
+
 def _as_transform_or_pose(value: Any, what: str) -> np.ndarray:
     arr = np.asarray(value, dtype=float)
     if arr.shape == (6,):

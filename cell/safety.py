@@ -35,7 +35,7 @@ from scipy.spatial.transform import Rotation
 from tapecell.estimator.errors import TaskFailed
 
 from .arm import Arm
-from .poses import interpolate_pose6, pose6_to_matrix, rotation_angle_between
+from .poses import interpolate_pose6, interpolate_pose6_at, pose6_to_matrix, rotation_angle_between
 
 
 class SafetyError(TaskFailed):
@@ -511,28 +511,55 @@ def check_linear_path(limits: SafetyLimits, start_pose: Any, poses: Any, speed: 
                       blend: float, points_flange: np.ndarray | None = None, shape: ToolShape | None = None,
                       q_start: Any = None) -> None:
     """Raise :class:`SafetyError` unless a blended ``moveL`` path of the flange from
-    ``start_pose`` through ``poses`` (n, 6) passes :func:`check_linear_move` segment by
-    segment and its ``blend`` radius [m] is less than half of every segment (a UR refuses
-    overlapping blends; the last pose is reached exactly). A blend rounds a corner inside
-    the triangle of its two segments, within ``blend`` of the corner's pose: on the lift's
-    nearly straight paths (corners of a few degrees) it leaves the checked segments by less
-    than 0.1 mm, well inside the clearance."""
+    ``start_pose`` through ``poses`` (n, 6) keeps to the limits: every leg as
+    :func:`check_linear_move` checks a single move, and the blends (:func:`check_blends`).
+    A refusal names the leg."""
     from .kinematics import ik_nearest
 
     rows = np.asarray(poses, float).reshape(-1, 6)
     previous = np.asarray(start_pose, float)
     q = None if q_start is None else np.asarray(q_start, float)
     for i, target in enumerate(rows):
-        check_linear_move(limits, previous, target, speed, acceleration, points_flange, shape, q)
-        if blend > 0 and i < len(rows) - 1:
-            shortest = min(np.linalg.norm(target[:3] - previous[:3]), np.linalg.norm(rows[i + 1, :3] - target[:3]))
-            if not blend < 0.5 * shortest:
-                raise SafetyError(f"linear path: blend radius {blend * 1e3:g} mm at pose {i + 1} is not less than "
-                                  f"half of its shorter segment ({shortest * 1e3:.1f} mm)")
+        try:
+            check_linear_move(limits, previous, target, speed, acceleration, points_flange, shape, q)
+        except SafetyError as e:
+            raise type(e)(f"linear path, leg {i + 1} of {len(rows)}: {e}") from None
         if q is not None:
             q_next = ik_nearest(pose6_to_matrix(target), q)
             q = q if q_next is None else q_next
         previous = target
+    check_blends(limits, start_pose, rows, speed, acceleration, blend, points_flange, shape)
+
+
+def check_blends(limits: SafetyLimits, start_pose: Any, poses: Any, speed: float, acceleration: float,
+                 blend: float, points_flange: np.ndarray | None = None, shape: ToolShape | None = None) -> None:
+    """Raise :class:`SafetyError` unless the blends of a ``moveL`` path from ``start_pose``
+    through ``poses`` (n, 6), ``blend`` [m] at each intermediate pose (the last is reached
+    exactly), are sound: ``blend`` finite and not negative, less than half of each leg it
+    joins (a UR refuses overlapping blends), and the chord across each blended corner, from
+    where the blend leaves one leg to where it joins the next, kept to the limits as a
+    straight move (:func:`check_linear_move`). A blend's curve lies in the triangle of that
+    chord and the two legs' ends (each within ``blend`` of the corner), whose three sides
+    are then checked. The legs themselves are :func:`check_linear_path`'s."""
+    blend = float(blend)
+    if not np.isfinite(blend) or blend < 0:
+        raise SafetyError(f"linear path: blend radius {blend} m is not a distance")
+    rows = np.asarray(poses, float).reshape(-1, 6)
+    if blend == 0 or len(rows) < 2:
+        return
+    ends = np.vstack([np.asarray(start_pose, float)[None], rows])
+    for i in range(1, len(rows)):
+        before, corner, after = ends[i - 1], ends[i], ends[i + 1]
+        legs = np.linalg.norm(corner[:3] - before[:3]), np.linalg.norm(after[:3] - corner[:3])
+        if not blend < 0.5 * min(legs):
+            raise SafetyError(f"linear path: blend radius {blend * 1e3:g} mm at pose {i} of {len(rows)} is not "
+                              f"less than half of its shorter leg ({min(legs) * 1e3:.1f} mm)")
+        leave = interpolate_pose6_at(before, corner, 1.0 - blend / legs[0])
+        join = interpolate_pose6_at(corner, after, blend / legs[1])
+        try:
+            check_linear_move(limits, leave, join, speed, acceleration, points_flange, shape)
+        except SafetyError as e:
+            raise type(e)(f"linear path, the blend at pose {i} of {len(rows)}: {e}") from None
 
 
 def line_joints(world_from_flange: np.ndarray, q_start: Any) -> np.ndarray:

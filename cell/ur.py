@@ -22,7 +22,10 @@ simulator and the tests never need a robot or the library. Facts this driver is 
   are retried a bounded number of times, each preceded by a probe.
 * A path (the lift) is one ``moveL(path)`` call, rows ``[x, y, z, rx, ry, rz, speed,
   acceleration, blend]`` with the last blend 0, so the arm does not stop between its
-  poses; every pose is checked as a single move's target is.
+  poses; every pose is checked as a single move's target is. ur_rtde runs a path as a
+  script of its own: it stops its control script, uploads one with the path injected and
+  waits (without a limit of its own) for it to run before the move starts, so a path's
+  deadline has :data:`PATH_SCRIPT_S` more than a move's.
 * After ``servoL``/``speedL`` a ``moveL`` is ignored until ``servoStop``/``speedStop``: both
   are sent before every move.
 * A motion that raises (or is interrupted, or returns False) is followed by ``stopL`` /
@@ -79,6 +82,9 @@ SAME_BRANCH_RAD = 0.1
 """The controller's inverse kinematics must land within this of the planner's on every joint."""
 TOOL_REACH_M = 0.2
 """Lever arm [m] used to turn a flange rotation into a path length for a move's deadline."""
+PATH_SCRIPT_S = 2.0
+"""Allowance [s] in a ``moveL(path)``'s deadline for ur_rtde's script upload before the path
+starts (module docstring; a few hundred ms on an idle controller)."""
 
 LINK_FACTORY: Callable[[], Any] = ProcessLink
 """Makes the link a URArm talks through (tests with in-process stand-ins use ThreadLink)."""
@@ -456,7 +462,8 @@ class URArm(Arm):
             b = pose6_to_matrix(target)
             path += np.linalg.norm(b[:3, 3] - a[:3, 3]) + TOOL_REACH_M * rotation_angle_between(a[:3, :3], b[:3, :3])
             a = b
-        deadline = path / speed + speed / acceleration + self.move_margin_s
+        # Every leg may speed up and slow down (blend 0 stops at each pose), plus the upload.
+        deadline = path / speed + len(rows) * speed / acceleration + PATH_SCRIPT_S + self.move_margin_s
         self._run("moveL", [rows], deadline, self._stop_linear,
                   f"moveL path of {len(rows)} poses to {_fmt(targets[-1])}")
 

@@ -139,14 +139,24 @@ class SimArm:
         along the way. Returns the joints reached."""
         return self._wait(self._stream_tcp(as_matrix(pose), speed, tool), settle_s)
 
-    def move_tcp_path(self, poses, speed: float = 0.1, tool: str | None = None, settle_s: float = 1.0) -> np.ndarray:
-        """Move the TCP through ``poses`` in order, each leg as :meth:`move_tcp`, without
-        settling between them (as a UR's blended ``moveL`` path: the servos' lag rounds the
-        corners); settles at the last. Returns the joints reached."""
+    def move_tcp_path(self, poses, speed: float = 0.1, tool: str | None = None, settle_s: float = 1.0,
+                      blend: bool = True) -> np.ndarray:
+        """Move the TCP through ``poses`` in order, each leg as :meth:`move_tcp`. ``blend``:
+        without settling between the legs (as a UR's blended ``moveL`` path: the servos' lag
+        rounds the corners), settling at the last; else settling at every pose. Every pose's
+        IK is solved before the arm moves (as the real arm checks every pose before the
+        path is sent). A blocked arm is noticed at the end (the settling fails), not per leg.
+        Returns the joints reached."""
         targets = [as_matrix(p) for p in poses]
         if not targets:
             raise SimArmError("a path needs at least one pose")
-        q_goal = self.cell.arm_ctrl.copy()
+        q = self.cell.arm_ctrl.copy()
+        for target in targets:                 # fail before moving
+            q = self.ik(target, tool, q)
+        if not blend:
+            for target in targets:
+                q = self.move_tcp(target, speed, tool, settle_s)
+            return q
         for target in targets:
             q_goal = self._stream_tcp(target, speed, tool)
         return self._wait(q_goal, settle_s)

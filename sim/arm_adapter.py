@@ -7,8 +7,9 @@ Differences from the real arm, and why:
   on the real arm.
 * The simulated moves run at the commanded speed with the acceleration implicit in its
   position servos; ``acceleration`` is validated (and checked by SafeArm) but not used.
-  A linear path runs its legs back to back, settling only at the last pose: the servos'
-  lag rounds the corners, as the blend radius does on a UR (``blend`` is checked, not used).
+  A linear path with a blend runs its legs back to back, settling only at the last pose:
+  the servos' lag rounds the corners, as the blend radius does on a UR (its size is
+  checked by SafeArm, not used); with blend 0 it settles at every pose.
 * A move whose joints do not arrive (the arm blocked by contact) is what a real arm
   reports as a protective stop: the adapter raises :class:`ProtectiveStopError` and
   reports ``is_protective_stopped()`` True until :meth:`SimArmAdapter.clear_protective_stop`.
@@ -97,9 +98,16 @@ class SimArmAdapter(Arm):
     def _move_linear_path(self, poses: np.ndarray, speed: float, acceleration: float, blend: float) -> None:
         targets = [pose6_to_matrix(p) for p in poses]
         if self.teleport:
-            self._guarded(lambda: self.sim_arm.set_joints(self.sim_arm.ik(targets[-1], "flange")), "linear path")
+            def place() -> None:
+                q = self.sim_arm.joints()
+                for target in targets:        # pose by pose: the configuration moveL keeps
+                    q = self.sim_arm.ik(target, "flange", q)
+                self.sim_arm.set_joints(q)
+
+            self._guarded(place, "linear path")
         else:
-            self._guarded(lambda: self.sim_arm.move_tcp_path(targets, speed=speed, tool="flange"), "linear path")
+            self._guarded(lambda: self.sim_arm.move_tcp_path(targets, speed=speed, tool="flange", blend=blend > 0),
+                          "linear path")
 
     def _move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:
         if self.teleport:

@@ -197,6 +197,21 @@ def test_a_failed_path_is_stopped(robot, rtde_server):
     assert robot.log[-1] == ("stopL", 3.0)
 
 
+def test_a_path_the_controller_refuses_or_fails_sends_nothing_or_is_stopped(robot, rtde_server):
+    start = matrix_to_pose6(fk(Q_START))
+    path = [start + np.array([0.0, 0.0, 0.01 * k, 0.0, 0.0, 0.0]) for k in (1, 2, 3)]
+    arm = make_arm(rtde_server.port)
+    arm.connect()
+    robot.pose_ok = False                  # isPoseWithinSafetyLimits says no: nothing moves
+    with pytest.raises(SafetyError, match="outside its safety limits"):
+        arm.move_linear_path(path, 0.05, 0.8, 0.002)
+    assert not any(c[0] == "moveL" for c in robot.log)
+    robot.pose_ok, robot.move_result = True, False     # the controller aborts the path
+    with pytest.raises(ArmError, match="moveL path of 3 poses .* failed"):
+        arm.move_linear_path(path, 0.05, 0.8, 0.002)
+    assert robot.log[-2][0] == "stopL" or robot.log[-1][0] == "stopL"
+
+
 def test_move_joints_exact_call(robot, rtde_server):
     q = Q_START + np.array([0.1, -0.05, 0.05, 0.0, 0.0, 0.2])
     with make_arm(rtde_server.port) as arm:

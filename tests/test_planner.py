@@ -207,7 +207,7 @@ def test_execute_plan_checks_before_the_first_motion():
             execute_plan(plan, arm, tight)
         with pytest.raises(SafetyError, match="speed"):
             execute_plan(plan, arm, LIMITS, Speeds(approach=1.0))
-    assert "move_joints" not in arm.call_names() and "move_linear" not in arm.call_names()
+    assert not any(name.startswith("move") for name in arm.call_names())
 
 
 def test_execute_plan_stops_the_arm_on_a_protective_stop():
@@ -229,6 +229,22 @@ def test_plan_to_json_and_describe():
     assert [w["name"] for w in d["waypoints"]] == names
     assert list(plan.tool_waypoints()) == names
     assert "grasp" in plan.describe() and "close_gripper" in plan.describe()
+    # The lift: one path step, its poses listed, its blend in the JSON.
+    assert d["steps"][-1] == ["move_linear_path", "lift", ["lift_1", "lift_2", "lift_3", "lift_4"], LIFT_BLEND_M]
+    lines = plan.describe().splitlines()
+    assert "move_linear_path: 5 poses, corners blended within 2 mm" in lines[-6]
+    assert [ln.split()[:2] for ln in lines[-5:]] == [["through", "lift_1"], ["through", "lift_2"],
+                                                     ["through", "lift_3"], ["through", "lift_4"], ["to", "lift"]]
+
+
+def test_a_plan_whose_blend_would_overlap_is_refused_before_the_first_motion():
+    tip, nodes = tape(np.zeros(15))
+    plan = plan_grasp(tip, PARAMS, GRIPPER, LIMITS, tape_points=nodes, q_start=REFERENCE_JOINTS)
+    steps = plan.steps[:-1] + (dataclasses.replace(plan.steps[-1], blend=0.006),)    # legs of 10 mm
+    arm = FakeArm(q0=REFERENCE_JOINTS)
+    with arm, pytest.raises(SafetyError, match="blend radius 6 mm"):
+        execute_plan(dataclasses.replace(plan, steps=steps), arm, LIMITS, Speeds())
+    assert not any(name.startswith("move") or name.endswith("gripper") for name in arm.call_names())
 
 
 def test_a_low_hanging_tip_is_reached_where_the_gripper_clears_the_table_and_the_part(monkeypatch):

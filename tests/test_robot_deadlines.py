@@ -195,6 +195,32 @@ def test_silent_move_stops_disconnects_and_raises_within_the_deadline(monkeypatc
         arm.move_linear(target, 0.1, 0.5)
 
 
+def test_a_silent_path_is_abandoned_after_its_deadline_with_the_script_upload(monkeypatch, stops, rtde_handshake):
+    robot = FakeRobot(Q_HOME)
+    install_fake_rtde(monkeypatch, robot)
+    robot.move_blocks = threading.Event()
+    script, dashboard = stops
+    arm = URArm("127.0.0.1", rtde_handshake.port, LIMITS, gripper=GripperIOSection(close_wait_s=0, open_wait_s=0),
+                move_margin_s=0.5, dashboard_port=dashboard.port, script_port=script.port)
+    start = matrix_to_pose6(fk(Q_HOME))
+    path = [start + np.array([0.0, 0.0, -0.01 * k, 0, 0, 0]) for k in (1, 2)]
+    try:
+        arm.connect()
+        t0 = time.monotonic()
+        with pytest.raises(RobotSilent) as e:
+            arm.move_linear_path(path, 0.1, 0.5, 0.002)
+        elapsed = time.monotonic() - t0
+    finally:
+        robot.move_blocks.set()
+    # 20 mm at 0.1 m/s + 2 x 0.1/0.5 s + PATH_SCRIPT_S 2 s (ur_rtde uploads a script for a
+    # path before it starts) + 0.5 s margin = 3.1 s; then the stop.
+    assert 3.0 < elapsed < 7.0
+    msg = str(e.value)
+    assert "did not answer moveL path of 2 poses" in msg and "within 3.1 s" in msg
+    time.sleep(0.3)
+    assert script.received == [b"stopj(2.0)\n"] and dashboard.received == [b"stop\n"]
+
+
 # ---------------------------------------------------- the real ProcessLink, the whole command
 def _cell_file(tmp_path: Path, rtde_port: int, script_port: int, dashboard_port: int) -> Path:
     text = default_cell_path().read_text()

@@ -10,8 +10,8 @@ from tapecell.cell.arm import ArmError
 from tapecell.cell.fake_arm import FakeArm
 from tapecell.cell.kinematics import fk
 from tapecell.cell.poses import pose6_to_matrix
-from tapecell.cell.safety import (SafeArm, SafetyError, SafetyLimits, check_joint_move, check_linear_move,
-                         check_points_flange, segment_hits_box)
+from tapecell.cell.safety import (KeepOutError, SafeArm, SafetyError, SafetyLimits, check_blends, check_joint_move,
+                         check_linear_move, check_linear_path, check_points_flange, segment_hits_box)
 
 Q0 = np.array([-1.5708, -1.9, 2.2, -1.87, -1.5708, 0.0])    # flange about (-0.13, 0.34, 0.35), down
 LIMITS = SafetyLimits(workspace_min=[-0.30, 0.10, 0.05], workspace_max=[0.60, 0.90, 0.70],
@@ -159,6 +159,21 @@ def test_safe_arm_checks_every_segment_and_the_blend_of_a_path():
         np.testing.assert_allclose(poses, path)
         assert (speed, acc, blend) == (0.05, 0.5, 0.002)
         np.testing.assert_allclose(safe.tcp_pose(), path[-1], atol=1e-9)
+
+
+def test_a_blend_that_cuts_a_corner_into_the_keep_out_box_is_refused():
+    # Two 25 mm legs round the keep-out box's corner, 5 mm outside both of its faces: each
+    # leg is clear, and so is a 2 mm blend; a 12 mm blend's chord cuts into the box.
+    origin = np.zeros((1, 3))
+    start, corner, end = ([0.075, 0.54, 0.05, *DOWN], [0.075, 0.565, 0.05, *DOWN], [0.05, 0.565, 0.05, *DOWN])
+    check_linear_path(LIMITS, start, [corner, end], 0.05, 0.5, 0.002, origin)
+    with pytest.raises(KeepOutError, match="the blend at pose 1 of 2"):
+        check_linear_path(LIMITS, start, [corner, end], 0.05, 0.5, 0.012, origin)
+    with pytest.raises(SafetyError, match="not a distance"):
+        check_blends(LIMITS, start, [corner, end], 0.05, 0.5, float("nan"), origin)
+    # A leg's refusal names the leg.
+    with pytest.raises(SafetyError, match="leg 2 of 2: .*keep-out"):
+        check_linear_path(LIMITS, start, [corner, [0.0, 0.50, 0.05, *DOWN]], 0.05, 0.5, 0.002, origin)
 
 
 def test_safe_arm_stops_the_inner_arm_when_the_block_fails():
