@@ -971,12 +971,12 @@ def _run_step(arm: Arm, plan: GraspPlan, step: Step, speeds: Speeds) -> None:
         arm.close_gripper()
     elif step.action == "move_joints":
         arm.move_joints(plan.waypoint(step.waypoint).q, speeds.joint, speeds.joint_accel)
-    elif step.action == "move_linear":
+    elif step.action in ("move_linear", "move_linear_path"):
         speed = speeds.lift if step.waypoint.startswith("lift") else speeds.approach
-        arm.move_linear(plan.waypoint(step.waypoint).flange_pose, speed, speeds.linear_accel)
-    elif step.action == "move_linear_path":
-        speed = speeds.lift if step.waypoint.startswith("lift") else speeds.approach
-        arm.move_linear_path([plan.waypoint(name).flange_pose for name in step.targets], speed,
-                             speeds.linear_accel, step.blend)
+        poses = [plan.waypoint(name).flange_pose for name in step.targets]
+        if step.action == "move_linear":
+            arm.move_linear(poses[0], speed, speeds.linear_accel)
+        else:
+            arm.move_linear_path(poses, speed, speeds.linear_accel, step.blend)
     else:
         raise ArmError(f"unknown plan step '{step.action}'")

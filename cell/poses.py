@@ -113,23 +113,23 @@ def rotation_angle_between(Ra: np.ndarray, Rb: np.ndarray) -> float:
 def interpolate_pose6(start: Any, end: Any, n: int) -> np.ndarray:
     """(n, 6) poses along the straight line from ``start`` to ``end``: positions linear,
     orientations by slerp (what a UR ``moveL`` does), both end points included."""
+    return _along(start, end, np.linspace(0.0, 1.0, max(int(n), 2)))
+
+
+def interpolate_pose6_at(start: Any, end: Any, s: float) -> np.ndarray:
+    """(6,) the pose a fraction ``s`` (0-1) along the straight line from ``start`` to ``end``,
+    as :func:`interpolate_pose6` samples it."""
+    return _along(start, end, np.array([float(s)]))[0]
+
+
+def _along(start: Any, end: Any, s: np.ndarray) -> np.ndarray:
+    """(len(s), 6) the poses at fractions ``s`` along the line from ``start`` to ``end``."""
     a, b = as_pose6(start, "start pose"), as_pose6(end, "end pose")
-    s = np.linspace(0.0, 1.0, max(int(n), 2))
     positions = a[:3] + s[:, None] * (b[:3] - a[:3])
     from scipy.spatial.transform import Slerp
 
     slerp = Slerp([0.0, 1.0], Rotation.from_rotvec(np.stack([a[3:], b[3:]])))
     return np.concatenate([positions, slerp(s).as_rotvec()], axis=1)
-
-
-def interpolate_pose6_at(start: Any, end: Any, s: float) -> np.ndarray:
-    """(6,) the pose a fraction ``s`` (0-1) along the straight line from ``start`` to ``end``,
-    as :func:`interpolate_pose6` samples it (position linear, orientation by slerp)."""
-    a, b = as_pose6(start, "start pose"), as_pose6(end, "end pose")
-    from scipy.spatial.transform import Slerp
-
-    slerp = Slerp([0.0, 1.0], Rotation.from_rotvec(np.stack([a[3:], b[3:]])))
-    return np.concatenate([a[:3] + float(s) * (b[:3] - a[:3]), slerp([float(s)]).as_rotvec()[0]])
 
 
 def _as_transform_or_pose(value: Any, what: str) -> np.ndarray:

@@ -378,9 +378,11 @@ class URArm(Arm):
                 f"{np.degrees(KINEMATICS_TOLERANCE_RAD):g} deg): another arm model, or a wrong calibration? "
                 "nothing was sent")
 
-    def _check_ik(self, pose: list[float], q_now: np.ndarray) -> None:
+    def _check_ik(self, pose: list[float], q_now: np.ndarray) -> np.ndarray:
         """Before a linear move: the controller's inverse kinematics of the target must exist,
-        agree with the planner's forward model, and stay on the planner's configuration."""
+        agree with the planner's forward model, and stay on the planner's configuration.
+        Returns the planner's joints at the target (``q_now`` where it has none): where the
+        next pose of a path is checked from."""
         T = pose6_to_matrix(pose)
         q_ctrl = self.ik(T, q_now)
         if q_ctrl is None:
@@ -392,6 +394,7 @@ class URArm(Arm):
             raise KinematicsMismatch(f"{self.name}: the controller reaches {_fmt(pose)} in another joint "
                                      f"configuration ({_fmt(q_ctrl)} rad) than the planner "
                                      f"({_fmt(q_ours)} rad); nothing was sent")
+        return q_now if q_ours is None else q_ours
 
     # -- state -----------------------------------------------------------------------
     def _tcp_pose(self) -> list[float]:
@@ -413,59 +416,58 @@ class URArm(Arm):
 
     # -- motion ----------------------------------------------------------------------
     def _move_linear(self, pose: np.ndarray, speed: float, acceleration: float) -> None:
-        self._ensure_link()
-        self._refuse_if_protective_stopped()
-        start = self._receive("getActualTCPPose")
-        q_now = np.asarray(self._receive("getActualQ"), float) if self.check_kinematics or self.limits.obstacles else None
+        start, q_now = self._linear_start()
         check_linear_move(self.limits, start, pose, speed, acceleration, self.points_flange, self.shape, q_now)
-        target = [float(v) for v in pose]
-        if self.check_kinematics:
-            self._check_ik(target, q_now)
-        if not self._call("control", "isPoseWithinSafetyLimits", target):
-            raise SafetyError(f"{self.name}: the controller says pose {_fmt(target)} is outside its "
-                              "safety limits or unreachable")
-        self._call("control", "servoStop")
-        self._call("control", "speedStop")
-        self._last_motion = "linear"
-        a, b = pose6_to_matrix(start), pose6_to_matrix(target)
-        path = np.linalg.norm(b[:3, 3] - a[:3, 3]) + TOOL_REACH_M * rotation_angle_between(a[:3, :3], b[:3, :3])
-        deadline = path / speed + speed / acceleration + self.move_margin_s
+        (target,) = self._checked_targets([pose], q_now)
+        self._begin_motion("linear")
+        deadline = _linear_length(start, [target]) / speed + speed / acceleration + self.move_margin_s
         self._run("moveL", [target, speed, acceleration], deadline, self._stop_linear, f"moveL to {_fmt(target)}")
 
     def _move_linear_path(self, poses: np.ndarray, speed: float, acceleration: float, blend: float) -> None:
         """One ``moveL(path)`` through ``poses``: rows ``[x, y, z, rx, ry, rz, speed,
         acceleration, blend]``, the last with blend 0 (the controller stops there). Every
         pose is checked as a single move's target is, before anything is sent."""
+        start, q_now = self._linear_start()
+        check_linear_path(self.limits, start, poses, speed, acceleration, blend, self.points_flange, self.shape, q_now)
+        targets = self._checked_targets(poses, q_now)
+        self._begin_motion("linear")
+        rows = [target + [float(speed), float(acceleration), float(blend) if i < len(targets) - 1 else 0.0]
+                for i, target in enumerate(targets)]
+        # Every leg may speed up and slow down (blend 0 stops at each pose), plus the upload.
+        deadline = (_linear_length(start, targets) / speed + len(rows) * speed / acceleration + PATH_SCRIPT_S
+                    + self.move_margin_s)
+        self._run("moveL", [rows], deadline, self._stop_linear,
+                  f"moveL path of {len(rows)} poses to {_fmt(targets[-1])}")
+
+    def _linear_start(self) -> tuple[list[float], np.ndarray | None]:
+        """Before a linear move: the link up, no protective stop; (the actual TCP pose, the
+        actual joints where a check needs them, else None)."""
         self._ensure_link()
         self._refuse_if_protective_stopped()
         start = self._receive("getActualTCPPose")
         q_now = np.asarray(self._receive("getActualQ"), float) if self.check_kinematics or self.limits.obstacles else None
-        check_linear_path(self.limits, start, poses, speed, acceleration, blend, self.points_flange, self.shape, q_now)
+        return start, q_now
+
+    def _checked_targets(self, poses, q_now: np.ndarray | None) -> list[list[float]]:
+        """``poses`` as lists of floats, each checked against the controller's inverse
+        kinematics (from ``q_now``, pose after pose) and its ``isPoseWithinSafetyLimits``."""
         targets = [[float(v) for v in pose] for pose in poses]
         if self.check_kinematics:
             q = q_now
             for target in targets:
-                self._check_ik(target, q)
-                q_next = ik_nearest(pose6_to_matrix(target), q)
-                q = q if q_next is None else q_next
+                q = self._check_ik(target, q)
         for target in targets:
             if not self._call("control", "isPoseWithinSafetyLimits", target):
                 raise SafetyError(f"{self.name}: the controller says pose {_fmt(target)} is outside its "
                                   "safety limits or unreachable")
+        return targets
+
+    def _begin_motion(self, kind: str) -> None:
+        """A move is ignored after servoL/speedL until servoStop/speedStop: both, then the
+        motion's kind for :meth:`_stop`."""
         self._call("control", "servoStop")
         self._call("control", "speedStop")
-        self._last_motion = "linear"
-        rows = [target + [float(speed), float(acceleration), float(blend) if i < len(targets) - 1 else 0.0]
-                for i, target in enumerate(targets)]
-        path, a = 0.0, pose6_to_matrix(start)
-        for target in targets:
-            b = pose6_to_matrix(target)
-            path += np.linalg.norm(b[:3, 3] - a[:3, 3]) + TOOL_REACH_M * rotation_angle_between(a[:3, :3], b[:3, :3])
-            a = b
-        # Every leg may speed up and slow down (blend 0 stops at each pose), plus the upload.
-        deadline = path / speed + len(rows) * speed / acceleration + PATH_SCRIPT_S + self.move_margin_s
-        self._run("moveL", [rows], deadline, self._stop_linear,
-                  f"moveL path of {len(rows)} poses to {_fmt(targets[-1])}")
+        self._last_motion = kind
 
     def _move_joints(self, q: np.ndarray, speed: float, acceleration: float) -> None:
         self._ensure_link()
@@ -478,9 +480,7 @@ class URArm(Arm):
         if not self._call("control", "isJointsWithinSafetyLimits", target):
             raise SafetyError(f"{self.name}: the controller says joints {_fmt(target)} are outside its "
                               "safety limits")
-        self._call("control", "servoStop")
-        self._call("control", "speedStop")
-        self._last_motion = "joint"
+        self._begin_motion("joint")
         deadline = float(np.max(np.abs(np.asarray(q) - q_now))) / speed + speed / acceleration + self.move_margin_s
         self._run("moveJ", [target, speed, acceleration], deadline, self._stop_joint, f"moveJ to {_fmt(target)}")
 
@@ -555,6 +555,18 @@ class URArm(Arm):
         ok = self._call("control", "teachMode" if enable else "endTeachMode")
         if not ok:
             raise ArmError(f"{self.name} refused to {'start' if enable else 'end'} freedrive")
+
+
+def _linear_length(start, targets) -> float:
+    """Path length [m] of straight moves from ``start`` through ``targets`` (pose6), a turn of
+    the flange counted at TOOL_REACH_M: for a move's deadline."""
+    length, a = 0.0, pose6_to_matrix(start)
+    for target in targets:
+        b = pose6_to_matrix(target)
+        length += float(np.linalg.norm(b[:3, 3] - a[:3, 3])) + TOOL_REACH_M * rotation_angle_between(a[:3, :3],
+                                                                                                   b[:3, :3])
+        a = b
+    return length
 
 
 def _fmt(v) -> str:

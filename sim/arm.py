@@ -150,22 +150,26 @@ class SimArm:
         targets = [as_matrix(p) for p in poses]
         if not targets:
             raise SimArmError("a path needs at least one pose")
-        q = self.cell.arm_ctrl.copy()
+        goals, q = [], self.cell.arm_ctrl.copy()
         for target in targets:                 # fail before moving
             q = self.ik(target, tool, q)
+            goals.append(q)
         if not blend:
             for target in targets:
                 q = self.move_tcp(target, speed, tool, settle_s)
             return q
-        for target in targets:
-            q_goal = self._stream_tcp(target, speed, tool)
-        return self._wait(q_goal, settle_s)
+        for target, q_goal in zip(targets, goals):
+            self._stream_tcp(target, speed, tool, q_goal)
+        return self._wait(goals[-1], settle_s)
 
-    def _stream_tcp(self, target: np.ndarray, speed: float, tool: str | None) -> np.ndarray:
+    def _stream_tcp(self, target: np.ndarray, speed: float, tool: str | None,
+                    q_goal: np.ndarray | None = None) -> np.ndarray:
         """Stream the servo targets of a straight TCP move from the commanded pose to
-        ``target`` (4x4), one per physics step; returns the target's joints (not waited for)."""
+        ``target`` (4x4), one per physics step; returns the target's joints (not waited for).
+        ``q_goal``: those joints when already solved (from the commanded joints, as here)."""
         start = self.fk(self.cell.arm_ctrl.copy(), tool)
-        q_goal = self.ik(target, tool, self.cell.arm_ctrl.copy())  # fail before moving
+        if q_goal is None:
+            q_goal = self.ik(target, tool, self.cell.arm_ctrl.copy())  # fail before moving
         dist = np.linalg.norm(target[:3, 3] - start[:3, 3])
         rots = Rotation.from_matrix(np.stack([start[:3, :3], target[:3, :3]]))
         angle = (rots[1] * rots[0].inv()).magnitude()
