@@ -22,8 +22,8 @@ def segments_hit_boxes(origin, points, centers, rotations, halves):
     (K, 3, 3), half edges (K, 3) already shrunk by the surface margin)."""
     n = points.shape[0]
     out = np.zeros(n, np.bool_)
+    o = np.empty(3)
     for k in range(centers.shape[0]):
-        o = np.empty(3)
         for a in range(3):
             o[a] = ((origin[0] - centers[k, 0]) * rotations[k, 0, a] + (origin[1] - centers[k, 1]) * rotations[k, 1, a]
                     + (origin[2] - centers[k, 2]) * rotations[k, 2, a])
@@ -36,8 +36,13 @@ def segments_hit_boxes(origin, points, centers, rotations, halves):
             for a in range(3):
                 p = ((points[i, 0] - centers[k, 0]) * rotations[k, 0, a] + (points[i, 1] - centers[k, 1]) * rotations[k, 1, a]
                      + (points[i, 2] - centers[k, 2]) * rotations[k, 2, a])
-                d = p - o[a]
                 h = halves[k, a]
+                if (p > h and o[a] > h) or (p < -h and o[a] < -h):
+                    # Both ends beyond one face: the segment cannot cross the box (the slab
+                    # test below finds the same, without its divisions).
+                    miss = True
+                    break
+                d = p - o[a]
                 if d == 0.0:
                     if abs(o[a]) > h:
                         miss = True

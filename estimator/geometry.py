@@ -6,6 +6,7 @@ All lengths are metres.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -117,12 +118,15 @@ class Camera:
     def world_from_camera(self) -> np.ndarray:
         return transform(self.R.T, -self.R.T @ self.t)
 
-    @property
+    @functools.cached_property
     def center(self) -> np.ndarray:
-        """Optical centre in the world frame [m]."""
-        return -self.R.T @ self.t
+        """Optical centre in the world frame [m] (computed once: a camera is not changed
+        after it is made, :meth:`with_pose` makes a new one; read-only)."""
+        c = -self.R.T @ self.t
+        c.setflags(write=False)
+        return c
 
-    @property
+    @functools.cached_property
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0))
 

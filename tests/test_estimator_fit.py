@@ -37,6 +37,21 @@ def test_projection_matches_opencv(seed):
     assert np.allclose(cam.project(pts), ref.reshape(-1, 2), atol=1e-6)
 
 
+def test_camera_centre_is_computed_once_and_read_only():
+    """Camera.center and has_distortion are cached (a camera is not changed once made): the
+    centre is -R^T t, cannot be written through, and a camera moved by with_pose or
+    dataclasses.replace has its own."""
+    import dataclasses
+
+    cam = rig_cameras(np.random.default_rng(7), np.zeros(3), 2, distortion=True)[0]
+    assert np.allclose(cam.center, -cam.R.T @ cam.t) and cam.center is cam.center
+    with pytest.raises(ValueError):
+        cam.center[0] = 1.0
+    moved = cam.with_pose(cam.R, cam.t + np.array([0.01, 0.0, 0.0]))
+    assert np.allclose(moved.center, -moved.R.T @ moved.t) and not np.allclose(moved.center, cam.center)
+    assert cam.has_distortion and not dataclasses.replace(cam, dist=np.zeros(5)).has_distortion
+
+
 @pytest.mark.parametrize("seed", [4, 5])
 def test_cost_is_zero_at_truth(seed):
     c, angles = make_capture_with_angles(seed, SyntheticOptions(kind="chain", cameras=3))

@@ -243,6 +243,18 @@ def test_compiled_occlusion_matches_reference():
         d_ref, g_ref = penetration(pts, [box])
         d, g = _kernels_boxes.box_penetration(pts, *arrays)
         assert np.allclose(d, d_ref) and np.allclose(g[d > 0], g_ref[d > 0])
+    # A table under the tape and a part on it, the camera above both: most points lie beyond
+    # the table's top face with the camera (the kernel's shortcut), some beyond a face of the
+    # part with it, some behind the part, on a face or inside a box.
+    table = Box("table", np.array([0.0, 0.0, -0.5]), np.array([2.0, 2.0, 1.0]), np.eye(3))
+    part = Box("part", np.array([0.1, 0.0, 0.05]), np.array([0.1, 0.2, 0.1]), cv2.Rodrigues(np.array([0, 0, 0.3]))[0])
+    pts = rng.uniform([-0.2, -0.2, -0.05], [0.3, 0.2, 0.2], size=(2000, 3))
+    pts[:20, 2] = 0.0                                   # on the table's top face
+    for eye in (np.array([0.3, 0.2, 0.8]), np.array([0.1, 0.0, 0.4]), np.array([-0.5, 0.0, 0.05])):
+        arrays = _kernels_boxes.box_arrays([table, part])
+        got = _kernels_boxes.segments_hit_boxes(eye, pts, *arrays)
+        assert np.array_equal(hidden(eye, pts, [table, part]), got)
+        assert 0 < got.sum() < len(pts)
 
 
 def test_curl_seen_from_one_direction_is_ambiguous():
