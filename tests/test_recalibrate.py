@@ -94,3 +94,25 @@ def test_a_correction_beyond_a_calibration_error_is_not_taken(monkeypatch):
     est = estimate(capture)
     assert est.verdict is Verdict.POOR_FIT
     assert "turned from their calibration" not in est.verdict_reason
+
+
+def test_corrections_that_do_not_explain_the_views_better_are_not_taken(monkeypatch):
+    """The corrected look must explain the views clearly better (MIN_GAIN of the first
+    answer's cost). This capture's corrections cut the cost far below that ("ok" above); with
+    MIN_GAIN lowered under its ratio the first answer stands. And the capture the rule came
+    from: 3 cameras, noisy masks, a right calibration, poor_fit 9 mm off, whose corrections of
+    0.2-0.3 deg made it "ok" 12.7 mm off at 0.985 of the cost: not "ok" now."""
+    gain = recalibrate.MIN_GAIN
+    capture, _ = _turned_capture(SEED, 3, 0.5)
+    after = estimate(capture)
+    monkeypatch.setattr(fit, "SELF_CALIBRATE", False)
+    ratio = after.cost / estimate(capture).cost
+    assert ratio < 0.5 * recalibrate.MIN_GAIN
+    monkeypatch.setattr(fit, "SELF_CALIBRATE", True)
+    monkeypatch.setattr(recalibrate, "MIN_GAIN", 0.9 * ratio)
+    est = estimate(capture)
+    assert est.verdict is Verdict.POOR_FIT and "turned from their calibration" not in est.verdict_reason
+    monkeypatch.setattr(recalibrate, "MIN_GAIN", gain)
+    noisy = make_capture(902049, SyntheticOptions(cameras=3, noise=True))
+    est = estimate(noisy)
+    assert est.verdict is not Verdict.OK or _tip_mm(noisy, est) < 5.0, (est.verdict, _tip_mm(noisy, est))
