@@ -368,6 +368,21 @@ class _Needle:
         hit = self.touch(label, target, R)
         return None if hit is None else hit[0]
 
+    def clear_past(self, tip: np.ndarray, R: np.ndarray) -> bool:
+        """Is there no tape within PROBE_PAST_CLEAR_M of the point PROBE_BEYOND_M past the end
+        at ``tip`` along the trunk of ``R``, a frame the needle's touches measured
+        (:meth:`end_frame`)? A "tip" on the tape's body whose own trunk crosses the tape
+        passes the probe past it along that trunk (off the tape's side), its corners and its
+        trunk point (on the tape); past it along the measured trunk there is tape. Fresh
+        simulated episodes with every camera turned 0.5 deg (1032000-, 1034000-, 2 cameras)
+        grasped three such ends, 12-44 mm from the tape's, touched 1.6-4.6 mm from that
+        point; the nine right ends whose frames were measured in 1034000-, 1035000- and
+        1037000- (2 cameras; 0, 0.3 and 0.5 deg) touched nothing there."""
+        from tapecell.cell.probe import PROBE_PAST_CLEAR_M
+
+        past = self.distance("past the measured end", tip + PROBE_BEYOND_M * R[:, 0], R)
+        return past is None or past > PROBE_PAST_CLEAR_M
+
     def corners_on_tape(self, tip: np.ndarray, R: np.ndarray, width: float) -> bool:
         """Are both corners of the end at ``tip`` (frame ``R``) tape
         (:func:`tapecell.cell.probe.corners_on_tape` of their :meth:`corner_touches`)?"""
@@ -643,6 +658,11 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
             frame = needle.end_frame(hypotheses[best][0], hypotheses[best][1], width)
             if frame is None:
                 best = None              # a corner in the air at every twist: the "tip" is not the tape's end
+            elif frame is not hypotheses[best][1] and not needle.clear_past(hypotheses[best][0], frame):
+                # The touches turned the end's frame: past the tip along the measured trunk
+                # there is tape, so the "tip" lies on the tape's body (its own trunk ran off
+                # the tape's side, where the first probe past it found nothing).
+                best, frame = None, None
         if best is None and short == near and len(short) == 1:
             # The one tip touched is short: the tape goes on along its trunk (an end hidden
             # from the cameras, hanging on past the model's): the needle walks on along it.

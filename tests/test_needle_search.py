@@ -263,3 +263,48 @@ def test_a_touched_tip_with_tape_near_the_point_past_it_is_not_the_end(monkeypat
     assert kept.verdict is Verdict.OK and kept.verdict_reason.startswith("hypothesis 1 confirmed")
     assert np.allclose(kept.tip_position, tip)
     assert touched[0] is None and touched[1] is not None
+
+
+def test_a_tip_on_the_body_is_not_confirmed_where_tape_lies_past_it_along_the_measured_frame(monkeypatch):
+    """A straight tape. A "tip" on its body near its side edge, its trunk pointing across the
+    tape: tape at its tip, none 6 mm past it along that trunk (off the tape's side). Where the
+    touches measure the end's frame along the tape (a frame other than the hypothesis'), the
+    needle also probes past the tip along the measured trunk: tape there, so it is not the
+    end and the estimate stays refused (fresh simulated episodes grasped three such "ends",
+    12-44 mm from the tape's, every camera turned 0.5 deg). The true end, twisted 25 deg,
+    gets its frame measured and is confirmed: nothing past it."""
+    import types
+
+    import tapecell.sim.episode as E
+    from tapecell.cell.config import load_cell_config
+    from tapecell.estimator import Estimate, Verdict
+    from tapecell.estimator.geometry import rot_x
+
+    centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
+    tip, right = centre[-1], frames[-1]
+    Needle = mounted(centre, frames)
+    monkeypatch.setattr(E, "_Needle", Needle)
+    cell = types.SimpleNamespace(config=load_cell_config())
+    angles = np.zeros((cell.config.tape.estimator_plates, 3))
+
+    def hidden(at, frame):
+        return Estimate(np.zeros((3, 3)), angles, at, frame, 0.05, np.zeros(2), 0.0, verdict=Verdict.HIDDEN,
+                        verdict_reason="1 camera(s) see the free end, 2 needed")
+
+    twisted = right @ rot_x(np.radians(25.0))
+    kept, _ = E.resolve_by_probing(cell, None, hidden(tip, twisted), WIDTH)
+    assert kept.verdict is Verdict.OK and kept.verdict_reason.endswith("its frame measured by the needle's touches")
+    assert np.allclose(kept.tip_position, tip)
+
+    body = np.array([0.0, 0.013, 0.06])                        # 2 mm in from the side edge
+    across = np.column_stack([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])   # trunk towards +y
+    assert Needle().distance("past", body + E.PROBE_BEYOND_M * across[:, 0], across) is None
+    along = right.copy()                                      # the tape's own frame there
+    assert Needle().distance("past", body + E.PROBE_BEYOND_M * along[:, 0], along) < E.PROBE_CONFIRM_M
+    monkeypatch.setattr(Needle, "end_frame", lambda self, at, R, width, plane=True: along)
+    kept, touched = E.resolve_by_probing(cell, None, hidden(body, across), WIDTH)
+    assert touched[0] is not None and touched[0] < 1e3 * E.PROBE_CONFIRM_M      # tape at the "tip" ...
+    assert kept.verdict is Verdict.HIDDEN                                         # ... but not the end
+    monkeypatch.setattr(Needle, "clear_past", lambda self, at, R: True)            # without the check:
+    kept, _ = E.resolve_by_probing(cell, None, hidden(body, across), WIDTH)
+    assert kept.verdict is Verdict.OK                                             # confirmed, as before
