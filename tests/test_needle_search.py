@@ -70,6 +70,22 @@ def mounted(centre: np.ndarray, frames: np.ndarray) -> type:
     return Needle
 
 
+def straight_cell(monkeypatch):
+    """A straight tape 120 mm up, its :class:`LineNeedle` mounted as ``resolve_by_probing``'s
+    needle (no arm): (the episode module, a cell with the bundled cell file, a zero chain's
+    angles, the tape's tip, its frame there, the needle class)."""
+    import types
+
+    import tapecell.sim.episode as E
+    from tapecell.cell.config import load_cell_config
+
+    centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
+    Needle = mounted(centre, frames)
+    monkeypatch.setattr(E, "_Needle", Needle)
+    cell = types.SimpleNamespace(config=load_cell_config())
+    return E, cell, np.zeros((cell.config.tape.estimator_plates, 3)), centre[-1], frames[-1], Needle
+
+
 def test_the_trace_follows_a_hooked_end_past_the_model():
     """A 5-plate model standing straight 100 mm up; the tape curls over a quarter turn past
     it. The trace from 10 mm back from the model's end follows the curl to the tape's end
@@ -200,19 +216,9 @@ def test_hypotheses_ending_at_the_same_point_are_probed_once(monkeypatch):
     away whose output chain ends at the answer's end, fit._cheapest_first; 949140): probed
     as two, both tips touched alike and nothing told them apart, and the episode was
     refused. The needle probes the same end once (SAME_END_M) and confirms it."""
-    import types
-
-    import tapecell.sim.episode as E
-    from tapecell.cell.config import load_cell_config
     from tapecell.estimator import Alternative, Estimate, Verdict
 
-    centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
-    tip, right = centre[-1], frames[-1]
-
-    Needle = mounted(centre, frames)
-    monkeypatch.setattr(E, "_Needle", Needle)
-    cell = types.SimpleNamespace(config=load_cell_config())
-    angles = np.zeros((cell.config.tape.estimator_plates, 3))
+    E, cell, angles, tip, right, _ = straight_cell(monkeypatch)
     est = Estimate(np.zeros((3, 3)), angles, tip, right, 0.0557, np.zeros(2), 0.0, verdict=Verdict.AMBIGUOUS,
                    verdict_reason="a shape with its tip 22 mm away explains the views nearly as well",
                    alternatives=(Alternative(0.0563, tip + 1e-4, right, angles),))
@@ -238,24 +244,14 @@ def test_a_touched_tip_with_tape_near_the_point_past_it_is_not_the_end(monkeypat
     tips' corners are tape, and nothing else tells them apart: the episode was refused.
     Tape within PROBE_PAST_CLEAR_M of the point past a tip means a tip on the body, as for
     a refit's: the true end is confirmed."""
-    import types
-
-    import tapecell.sim.episode as E
-    from tapecell.cell.config import load_cell_config
     from tapecell.estimator import Alternative, Estimate, Verdict
 
-    centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
-    tip, right = centre[-1], frames[-1]
+    E, cell, angles, tip, right, Needle = straight_cell(monkeypatch)
     a = np.radians(53.0)
     body_tip = np.array([0.0, 0.0, 0.06])
     body_frame = np.column_stack([[np.sin(a), 0.0, np.cos(a)], [0.0, 1.0, 0.0], [-np.cos(a), 0.0, np.sin(a)]])
-
-    Needle = mounted(centre, frames)
     past = Needle().distance("past", body_tip + E.PROBE_BEYOND_M * body_frame[:, 0], body_frame)
     assert E.PROBE_CONFIRM_M < past <= E.PROBE_PAST_CLEAR_M
-    monkeypatch.setattr(E, "_Needle", Needle)
-    cell = types.SimpleNamespace(config=load_cell_config())
-    angles = np.zeros((cell.config.tape.estimator_plates, 3))
     est = Estimate(np.zeros((3, 3)), angles, body_tip, body_frame, 0.0557, np.zeros(2), 0.0,
                    verdict=Verdict.AMBIGUOUS, verdict_reason="a shape with its tip 60 mm away explains the views",
                    alternatives=(Alternative(0.0563, tip, right, angles),))
@@ -273,19 +269,10 @@ def test_a_tip_on_the_body_is_not_confirmed_where_tape_lies_past_it_along_the_me
     end and the estimate stays refused (fresh simulated episodes grasped three such "ends",
     12-44 mm from the tape's, every camera turned 0.5 deg). The true end, twisted 25 deg,
     gets its frame measured and is confirmed: nothing past it."""
-    import types
-
-    import tapecell.sim.episode as E
-    from tapecell.cell.config import load_cell_config
     from tapecell.estimator import Estimate, Verdict
     from tapecell.estimator.geometry import rot_x
 
-    centre, frames = hooked_tape(straight=0.12, curl_deg=0.0)
-    tip, right = centre[-1], frames[-1]
-    Needle = mounted(centre, frames)
-    monkeypatch.setattr(E, "_Needle", Needle)
-    cell = types.SimpleNamespace(config=load_cell_config())
-    angles = np.zeros((cell.config.tape.estimator_plates, 3))
+    E, cell, angles, tip, right, Needle = straight_cell(monkeypatch)
 
     def hidden(at, frame):
         return Estimate(np.zeros((3, 3)), angles, at, frame, 0.05, np.zeros(2), 0.0, verdict=Verdict.HIDDEN,
