@@ -550,7 +550,10 @@ def warm() -> float:
     t = np.array([0.5])
     F, E, _ = beam_candidates(np.eye(3)[None], np.zeros((1, 3)), np.eye(3)[None], 0.01, 0.005, t, t, t)
     diverse(np.arange(1), E, 1, 0.001)
-    segments_hit_boxes(np.zeros(3), np.ones((1, 3)), *box_arrays([_WARM_BOX]))
+    origin = np.zeros(3)
+    segments_hit_boxes(origin, np.ones((1, 3)), *box_arrays([_WARM_BOX]))
+    origin.setflags(write=False)     # a camera's centre is read-only (Camera.center): typed apart
+    segments_hit_boxes(origin, np.ones((1, 3)), *box_arrays([_WARM_BOX]))
     box_penetration(np.ones((1, 3)), *box_arrays([_WARM_BOX]))
     lab = np.zeros((2, 2), np.int32)
     map_labels(lab, np.zeros(label_areas(lab, 1).size, np.uint8), np.zeros((2, 2), np.uint8))

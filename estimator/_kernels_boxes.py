@@ -37,9 +37,10 @@ def segments_hit_boxes(origin, points, centers, rotations, halves):
                 p = ((points[i, 0] - centers[k, 0]) * rotations[k, 0, a] + (points[i, 1] - centers[k, 1]) * rotations[k, 1, a]
                      + (points[i, 2] - centers[k, 2]) * rotations[k, 2, a])
                 h = halves[k, a]
-                if (p > h and o[a] > h) or (p < -h and o[a] < -h):
+                if h > 0.0 and ((p > h and o[a] > h) or (p < -h and o[a] < -h)):
                     # Both ends beyond one face: the segment cannot cross the box (the slab
-                    # test below finds the same, without its divisions).
+                    # test below finds the same, without its divisions; not for a box thinner
+                    # than the surface margin, whose shrunk half is negative).
                     miss = True
                     break
                 d = p - o[a]

@@ -488,7 +488,7 @@ def _recalibrated(capture: Capture, est: Estimate, config: FitConfig) -> Estimat
         return dataclasses.replace(est, time_s=est.time_s + spent)
     # (``callback`` saw the first look's iterations; the corrected look's are in ``trace``.)
     again = _look(recalibrate.corrected(capture, rotations), "default", None, False, config, True)
-    if again.verdict is not Verdict.OK or again.cost > recalibrate.MIN_GAIN * est.cost:
+    if again.verdict is not Verdict.OK or not again.cost <= recalibrate.MIN_GAIN * est.cost:
         return dataclasses.replace(est, time_s=est.time_s + spent + again.time_s)
     turns = ", ".join(f"{v.camera.name} {d:.2f}" for v, d in zip(capture.views, degrees))
     # (Not the first answer's reason: its words are read elsewhere, cell.probe.end_measurable.)

@@ -368,19 +368,26 @@ class _Needle:
         hit = self.touch(label, target, R)
         return None if hit is None else hit[0]
 
-    def clear_past(self, tip: np.ndarray, R: np.ndarray) -> bool:
+    def clear_past(self, tip: np.ndarray, R: np.ndarray, label: str) -> bool:
         """Is there no tape within PROBE_PAST_CLEAR_M of the point PROBE_BEYOND_M past the end
         at ``tip`` along the trunk of ``R``, a frame the needle's touches measured
-        (:meth:`end_frame`)? A "tip" on the tape's body whose own trunk crosses the tape
-        passes the probe past it along that trunk (off the tape's side), its corners and its
-        trunk point (on the tape); past it along the measured trunk there is tape. Fresh
-        simulated episodes with every camera turned 0.5 deg (1032000-, 1034000-, 2 cameras)
-        grasped three such ends, 12-44 mm from the tape's, touched 1.6-4.6 mm from that
-        point; the nine right ends whose frames were measured in 1034000-, 1035000- and
-        1037000- (2 cameras; 0, 0.3 and 0.5 deg) touched nothing there."""
+        (:meth:`end_frame`), approached along its normal? A "tip" on the tape's body can pass
+        the probe past it made along its own frame: in fresh simulated episodes with every
+        camera turned 0.5 deg (2 cameras) such tips met tape there 6.0 and 9.6 mm from the
+        point (more than PROBE_CONFIRM_M, which says the tape goes on; a lone touched tip is
+        not refused for tape within PROBE_PAST_CLEAR_M, as one of several is), then their
+        corners and trunk point were tape, and the touches tilted their frames 27-33 deg
+        onto the tape (:meth:`_plane_frame`); along the measured frames the point past them
+        was tape 1.6 and 4.6 mm away. Three such "ends", 12-44 mm from the tape's, were
+        grasped (1032002, 1032007, 1034034); the nine right ends whose frames were measured
+        in 1034000-, 1035000- and 1037000- (2 cameras; 0.5, 0 and 0.3 deg) touched nothing
+        within the needle's reach there. ``label``: the probe's, for the recording; the
+        distance [mm] (None: nothing touched) is noted as ``probed_past_mm``."""
         from tapecell.cell.probe import PROBE_PAST_CLEAR_M
 
-        past = self.distance("past the measured end", tip + PROBE_BEYOND_M * R[:, 0], R)
+        past = self.distance(label, tip + PROBE_BEYOND_M * R[:, 0], R)
+        if self.notes is not None:
+            self.notes.setdefault("probed_past_mm", []).append(None if past is None else round(1e3 * past, 2))
         return past is None or past > PROBE_PAST_CLEAR_M
 
     def corners_on_tape(self, tip: np.ndarray, R: np.ndarray, width: float) -> bool:
@@ -658,10 +665,11 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
             frame = needle.end_frame(hypotheses[best][0], hypotheses[best][1], width)
             if frame is None:
                 best = None              # a corner in the air at every twist: the "tip" is not the tape's end
-            elif frame is not hypotheses[best][1] and not needle.clear_past(hypotheses[best][0], frame):
-                # The touches turned the end's frame: past the tip along the measured trunk
-                # there is tape, so the "tip" lies on the tape's body (its own trunk ran off
-                # the tape's side, where the first probe past it found nothing).
+            elif frame is not hypotheses[best][1] and not needle.clear_past(
+                    hypotheses[best][0], frame, f"past hypothesis {best}'s measured end"):
+                # The touches turned the end's frame: past the tip along the measured frame
+                # there is tape, so the "tip" lies on the tape's body (the probe past it along
+                # its own frame met the tape only farther off).
                 best, frame = None, None
         if best is None and short == near and len(short) == 1:
             # The one tip touched is short: the tape goes on along its trunk (an end hidden

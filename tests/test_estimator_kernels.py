@@ -184,3 +184,22 @@ def test_mask_cleaning_matches_reference():
     ref = fill_pinholes(clean_mask(m.astype(bool), NUMPY), NUMPY)
     assert got.dtype == ref.dtype == np.uint8 and np.array_equal(got, ref)
     assert 0 < int(got.sum()) < m.size and not np.array_equal(ref, m)
+
+
+def test_warm_compiles_every_kernel_a_fit_calls():
+    """After ``warm()`` a fit compiles nothing (its clock must not pay for it): a capture with
+    scene boxes (the part, the table) and a camera whose read-only centre numba types apart
+    adds no signature to any compiled kernel."""
+    from tapecell.estimator import _kernels, _kernels_beam, _kernels_boxes, estimate
+    from tapecell.estimator.synthetic import SyntheticOptions, make_capture
+
+    def signatures():
+        return {(m.__name__, name): len(f.signatures) for m in (_kernels, _kernels_beam, _kernels_boxes)
+                for name, f in vars(m).items() if hasattr(f, "signatures") and hasattr(f, "py_func")}
+
+    _kernels.warm()
+    before = signatures()
+    capture = make_capture(3, SyntheticOptions(cameras=3, part=True))
+    assert capture.scene and capture.views[0].camera.center.flags.writeable is False
+    estimate(capture)
+    assert signatures() == before

@@ -60,6 +60,8 @@ def mounted(centre: np.ndarray, frames: np.ndarray) -> type:
     class Needle(LineNeedle):
         def __init__(self, *args):
             super().__init__(centre, frames)
+            if len(args) == 4:                  # resolve_by_probing's (cell, arm, probes, notes)
+                self.probes, self.notes = args[2], args[3]
 
         def __enter__(self):
             return self
@@ -262,15 +264,17 @@ def test_a_touched_tip_with_tape_near_the_point_past_it_is_not_the_end(monkeypat
 
 
 def test_a_tip_on_the_body_is_not_confirmed_where_tape_lies_past_it_along_the_measured_frame(monkeypatch):
-    """A straight tape. A "tip" on its body near its side edge, its trunk pointing across the
-    tape: tape at its tip, none 6 mm past it along that trunk (off the tape's side). Where the
-    touches measure the end's frame along the tape (a frame other than the hypothesis'), the
-    needle also probes past the tip along the measured trunk: tape there, so it is not the
-    end and the estimate stays refused (fresh simulated episodes grasped three such "ends",
-    12-44 mm from the tape's, every camera turned 0.5 deg). The true end, twisted 25 deg,
-    gets its frame measured and is confirmed: nothing past it."""
+    """A straight tape. A "tip" on its body, its frame pitched 40 deg out of the tape's plane:
+    tape at its tip, and 6 mm past it along that frame tape only 5 mm from the point (more
+    than PROBE_CONFIRM_M, so not "the tape goes on"; a lone touched tip is not refused for it).
+    Where the touches measure the end's frame onto the tape (the tilt :meth:`_plane_frame`
+    makes, here stood in for: the straight analytic tape gives no trunk point to tilt onto),
+    the needle probes past the tip again along the measured frame: tape there, so it is not
+    the end and the estimate stays refused (fresh simulated episodes grasped three such
+    "ends", 12-44 mm from the tape's, every camera turned 0.5 deg). The true end, twisted
+    25 deg, gets its frame measured (unpatched) and is confirmed: nothing past it."""
     from tapecell.estimator import Estimate, Verdict
-    from tapecell.estimator.geometry import rot_x
+    from tapecell.estimator.geometry import rot_x, rot_y
 
     E, cell, angles, tip, right, Needle = straight_cell(monkeypatch)
 
@@ -278,20 +282,22 @@ def test_a_tip_on_the_body_is_not_confirmed_where_tape_lies_past_it_along_the_me
         return Estimate(np.zeros((3, 3)), angles, at, frame, 0.05, np.zeros(2), 0.0, verdict=Verdict.HIDDEN,
                         verdict_reason="1 camera(s) see the free end, 2 needed")
 
-    twisted = right @ rot_x(np.radians(25.0))
-    kept, _ = E.resolve_by_probing(cell, None, hidden(tip, twisted), WIDTH)
+    notes: dict = {}
+    kept, _ = E.resolve_by_probing(cell, None, hidden(tip, right @ rot_x(np.radians(25.0))), WIDTH, None, None, notes)
     assert kept.verdict is Verdict.OK and kept.verdict_reason.endswith("its frame measured by the needle's touches")
-    assert np.allclose(kept.tip_position, tip)
+    assert np.allclose(kept.tip_position, tip) and notes["probed_past_mm"] == [None]
 
-    body = np.array([0.0, 0.013, 0.06])                        # 2 mm in from the side edge
-    across = np.column_stack([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0], [-1.0, 0.0, 0.0]])   # trunk towards +y
-    assert Needle().distance("past", body + E.PROBE_BEYOND_M * across[:, 0], across) is None
-    along = right.copy()                                      # the tape's own frame there
-    assert Needle().distance("past", body + E.PROBE_BEYOND_M * along[:, 0], along) < E.PROBE_CONFIRM_M
-    monkeypatch.setattr(Needle, "end_frame", lambda self, at, R, width, plane=True: along)
-    kept, touched = E.resolve_by_probing(cell, None, hidden(body, across), WIDTH)
+    body = np.array([0.0, 0.0, 0.06])
+    pitched = right @ rot_y(np.radians(40.0))
+    past = Needle().distance("past", body + E.PROBE_BEYOND_M * pitched[:, 0], pitched)
+    assert E.PROBE_CONFIRM_M < past <= E.PROBE_PAST_CLEAR_M
+    assert Needle().distance("past", body + E.PROBE_BEYOND_M * right[:, 0], right) < E.PROBE_CONFIRM_M
+    monkeypatch.setattr(Needle, "end_frame", lambda self, at, R, width, plane=True: right)
+    notes.clear()
+    kept, touched = E.resolve_by_probing(cell, None, hidden(body, pitched), WIDTH, None, None, notes)
     assert touched[0] is not None and touched[0] < 1e3 * E.PROBE_CONFIRM_M      # tape at the "tip" ...
     assert kept.verdict is Verdict.HIDDEN                                         # ... but not the end
-    monkeypatch.setattr(Needle, "clear_past", lambda self, at, R: True)            # without the check:
-    kept, _ = E.resolve_by_probing(cell, None, hidden(body, across), WIDTH)
+    assert notes["probed_past_mm"][0] < 1e3 * E.PROBE_CONFIRM_M
+    monkeypatch.setattr(Needle, "clear_past", lambda self, at, R, label: True)     # without the check:
+    kept, _ = E.resolve_by_probing(cell, None, hidden(body, pitched), WIDTH)
     assert kept.verdict is Verdict.OK                                             # confirmed, as before

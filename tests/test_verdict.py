@@ -255,6 +255,13 @@ def test_compiled_occlusion_matches_reference():
         got = _kernels_boxes.segments_hit_boxes(eye, pts, *arrays)
         assert np.array_equal(hidden(eye, pts, [table, part]), got)
         assert 0 < got.sum() < len(pts)
+    # A sheet thinner than twice the surface margin: its shrunk half is negative, where the
+    # shortcut does not hold; the kernel still agrees with the reference.
+    sheet = Box("sheet", np.array([0.0, 0.0, 0.05]), np.array([0.2, 0.2, 0.0015]), np.eye(3))
+    eye = np.array([0.0, 0.0, 0.5])
+    pts = np.array([[0.0, 0.0, 0.0], [0.05, 0.02, -0.1], [0.0, 0.0, 0.2], [0.01, 0.0, 0.05]])   # the last in it
+    arrays = _kernels_boxes.box_arrays([sheet])
+    assert np.array_equal(hidden(eye, pts, [sheet]), _kernels_boxes.segments_hit_boxes(eye, pts, *arrays))
 
 
 def test_curl_seen_from_one_direction_is_ambiguous():
