@@ -459,10 +459,10 @@ such ends instead turned 24 right "ok"s into ``hidden``."""
 SELF_CALIBRATE = True
 """With three cameras or more, a ``poor_fit`` answer is estimated again with each camera's
 rotation corrected from the views (:mod:`estimator.recalibrate`); the corrected answer stands
-where it is "ok" and explains the views clearly better (:func:`_recalibrated`). Only ``poor_fit``: on calibrated simulated captures
-(976000-, 981000-, 3 cameras) corrections made "ok" answers whose views were explained only
-roughly (a tape that is not the model) 1-2 mm worse, and an ``ambiguous`` one turned with
-0.5 deg "ok" 6.2 mm off."""
+where it is "ok" and explains the views clearly better (:func:`_recalibrated`). Only
+``poor_fit``: on calibrated simulated captures (976000-, 981000-, 3 cameras) corrections made
+"ok" answers whose views were explained only roughly (a tape that is not the model) 1-2 mm
+worse, and an ``ambiguous`` one turned with 0.5 deg "ok" 6.2 mm off."""
 
 
 def _calibration_suspect(capture: Capture, est: Estimate) -> bool:
@@ -476,8 +476,8 @@ def _recalibrated(capture: Capture, est: Estimate, config: FitConfig) -> Estimat
     """The answer with every camera's rotation corrected from the views
     (:func:`recalibrate.camera_corrections`, from ``est``'s chain) where it is "ok" and
     explains the views clearly better (its cost at most ``recalibrate.MIN_GAIN`` of
-    ``est``'s), its reason naming the corrections; else ``est``. A correction beyond ``recalibrate.MAX_DEG``
-    for any camera is not taken. The time of both counts. The answer's nodes and tip are in
+    ``est``'s), its reason naming the corrections; else ``est``. A correction beyond
+    ``recalibrate.MAX_DEG`` for any camera is not taken. The time of both counts. The answer's nodes and tip are in
     the world frame, which the tape's base anchors; its views' costs and offsets are on the
     corrected cameras."""
     start = time.perf_counter()

@@ -45,8 +45,8 @@ cameras could have: the corrected answer is not taken."""
 MIN_GAIN = 0.9
 """The corrected answer is taken only where its eq.-11 cost (on the corrected cameras) is at
 most this fraction of the answer's on the cameras as given: corrections that fit a wrong shape
-better do not explain the views better. Fresh noisy-902049 (3 cameras, noisy masks, the
-calibration right) was ``poor_fit`` 9.0 mm off; corrections of 0.2-0.3 deg made it "ok" 12.7 mm
+better do not explain the views better. The development capture noisy-902049 (3 cameras,
+noisy masks, the calibration right) was ``poor_fit`` 9.0 mm off; corrections of 0.2-0.3 deg made it "ok" 12.7 mm
 off at 0.985 of the cost. On 100 simulated 3-camera captures with every camera turned 0.25 or
 0.5 deg (seeds 905000-, 906000- with noisy masks, 907000-) the 83 corrected answers that were
 "ok" cost 0.07-0.81 of the first answer (median 0.27) and lay within 3.4 mm of the true tip."""

@@ -372,13 +372,13 @@ class _Needle:
         """Is there no tape within PROBE_PAST_CLEAR_M of the point PROBE_BEYOND_M past the end
         at ``tip`` along the trunk of ``R``, a frame the needle's touches measured
         (:meth:`end_frame`), approached along its normal? A "tip" on the tape's body can pass
-        the probe past it made along its own frame: in fresh simulated episodes with every
-        camera turned 0.5 deg (2 cameras) such tips met tape there 6.0 and 9.6 mm from the
+        the probe past it made along its own frame: in simulated episodes with every camera
+        turned 0.5 deg (2 cameras) two such tips met tape there 6.0 and 9.6 mm from the
         point (more than PROBE_CONFIRM_M, which says the tape goes on; a lone touched tip is
         not refused for tape within PROBE_PAST_CLEAR_M, as one of several is), then their
         corners and trunk point were tape, and the touches tilted their frames 27-33 deg
-        onto the tape (:meth:`_plane_frame`); along the measured frames the point past them
-        was tape 1.6 and 4.6 mm away. Three such "ends", 12-44 mm from the tape's, were
+        onto the tape (:meth:`_plane_frame`); along the measured frames the point past such
+        tips was tape 1.6-4.6 mm away. Three such "ends", 12-44 mm from the tape's, were
         grasped (1032002, 1032007, 1034034); the nine right ends whose frames were measured
         in 1034000-, 1035000- and 1037000- (2 cameras; 0.5, 0 and 0.3 deg) touched nothing
         within the needle's reach there. ``label``: the probe's, for the recording; the

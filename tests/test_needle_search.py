@@ -270,7 +270,7 @@ def test_a_tip_on_the_body_is_not_confirmed_where_tape_lies_past_it_along_the_me
     Where the touches measure the end's frame onto the tape (the tilt :meth:`_plane_frame`
     makes, here stood in for: the straight analytic tape gives no trunk point to tilt onto),
     the needle probes past the tip again along the measured frame: tape there, so it is not
-    the end and the estimate stays refused (fresh simulated episodes grasped three such
+    the end and the estimate stays refused (simulated episodes grasped three such
     "ends", 12-44 mm from the tape's, every camera turned 0.5 deg). The true end, twisted
     25 deg, gets its frame measured (unpatched) and is confirmed: nothing past it."""
     from tapecell.estimator import Estimate, Verdict
