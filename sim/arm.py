@@ -154,13 +154,11 @@ class SimArm:
         for target in targets:                 # fail before moving
             q = self.ik(target, tool, q)
             goals.append(q)
-        if not blend:
-            for target in targets:
-                q = self.move_tcp(target, speed, tool, settle_s)
-            return q
-        for target, q_goal in zip(targets, goals):
+        for k, (target, q_goal) in enumerate(zip(targets, goals)):
             self._stream_tcp(target, speed, tool, q_goal)
-        return self._wait(goals[-1], settle_s)
+            if not blend or k == len(targets) - 1:
+                q = self._wait(q_goal, settle_s)
+        return q
 
     def _stream_tcp(self, target: np.ndarray, speed: float, tool: str | None,
                     q_goal: np.ndarray | None = None) -> np.ndarray:

@@ -383,8 +383,6 @@ class _Needle:
         in 1034000-, 1035000- and 1037000- (2 cameras; 0.5, 0 and 0.3 deg) touched nothing
         within the needle's reach there. ``label``: the probe's, for the recording; the
         distance [mm] (None: nothing touched) is noted as ``probed_past_mm``."""
-        from tapecell.cell.probe import PROBE_PAST_CLEAR_M
-
         past = self.distance(label, tip + PROBE_BEYOND_M * R[:, 0], R)
         if self.notes is not None:
             self.notes.setdefault("probed_past_mm", []).append(None if past is None else round(1e3 * past, 2))
