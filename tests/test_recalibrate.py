@@ -1,6 +1,7 @@
 """Camera rotations corrected from the views with three cameras (estimator/recalibrate.py,
 fit._recalibrated): a capture whose cameras are each turned 0.5 deg is "ok" near the true
-tip instead of poor_fit; two cameras, calibrated cameras and corrections too large to be a
+tip instead of poor_fit; two cameras turned are corrected where the model misses the tape's
+base; calibrated cameras, an answer whose base is met and corrections too large to be a
 calibration error are left alone."""
 from __future__ import annotations
 
@@ -70,15 +71,35 @@ def test_calibrated_cameras_get_almost_no_correction():
     assert np.degrees(np.linalg.norm(rotations, axis=1)).max() < 0.1   # a fifth of the 0.5 deg corrected above
 
 
-def test_two_cameras_are_never_corrected(monkeypatch):
-    """Two views are explained by a shifted shape: nothing to correct the cameras from."""
-    capture, _ = _turned_capture(SEED, 2, 1.0)
+@pytest.mark.parametrize("seed, before", [(100, Verdict.POOR_FIT), (101, Verdict.HIDDEN)])
+def test_two_cameras_are_corrected_where_the_model_misses_the_base(monkeypatch, seed, before):
+    """Two views alone are explained by a shifted shape, but not at the base, which cannot
+    move: the corrections are anchored there. Both cameras turned 0.6 deg: seed 100 is
+    poor_fit 10.5 mm off, seed 101 ``hidden`` 8.0 mm off (its end no longer located, the model
+    off the base); both "ok" about 1.5 mm off corrected."""
+    capture, _ = _turned_capture(seed, 2, 0.6)
+    monkeypatch.setattr(fit, "SELF_CALIBRATE", False)
+    first = estimate(capture)
+    assert first.verdict is before and _tip_mm(capture, first) > 5.0
+    monkeypatch.setattr(fit, "SELF_CALIBRATE", True)
+    after = estimate(capture)
+    assert after.verdict is Verdict.OK, after.verdict_reason
+    assert "turned from their calibration" in after.verdict_reason
+    assert _tip_mm(capture, after) < 2.5
+
+
+def test_a_hidden_end_whose_base_is_met_is_not_corrected(monkeypatch):
+    """A ``hidden`` answer with the cameras right (its end over its own body in one view,
+    0.4 mm off) meets the tape at its base: no correction is tried."""
+    capture = make_capture(1044024, SyntheticOptions(cameras=2))
 
     def refuse(*_a, **_k):
-        raise AssertionError("two cameras were corrected")
+        raise AssertionError("the cameras were corrected")
 
     monkeypatch.setattr(recalibrate, "camera_corrections", refuse)
-    assert estimate(capture).verdict is Verdict.POOR_FIT   # with three cameras, it would be
+    est = estimate(capture)
+    assert est.verdict is Verdict.HIDDEN
+    assert _tip_mm(capture, est) < 1.0
 
 
 def test_a_correction_beyond_a_calibration_error_is_not_taken(monkeypatch):
