@@ -291,6 +291,7 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
                [(a.cost, a.tip_position) for a in near], strip_offsets)
     verdict, reason = j.verdict, j.reason
+    base_px = float("nan")
     if verdict is Verdict.OK:
         # The base is fixed: the model must meet the observed tape there in every view. (Of
         # the plate chain, or of the strip where the strip explained the views for it.)
@@ -298,6 +299,7 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
         if j.by_strip and strip_shape is not None:
             base = np.minimum(base, _base(capture, *strip_view(), strip_quads))
         worst = int(np.argmax(base))
+        base_px = float(base[worst])
         if base[worst] > BASE_OFFSET_PX:
             verdict, reason = Verdict.POOR_FIT, (
                 f"view {worst} ({capture.views[worst].camera.name}) does not meet the tape at its base: mean "
@@ -309,7 +311,7 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
             # A tape hardly bends within its own plane: no tape takes this shape.
             verdict, reason = Verdict.POOR_FIT, (f"the shape {EDGEWISE} by {bend:.0f} deg at joint {joint} (> "
                                                  f"{EDGEWISE_MAX_DEG:g} deg): not a shape a tape takes")
-    return dataclasses.replace(j, verdict=verdict, reason=reason), tuple(near)
+    return dataclasses.replace(j, verdict=verdict, reason=reason, base_px=base_px), tuple(near)
 
 
 BASE_OCCLUSION_CELLS = 12
@@ -474,12 +476,15 @@ def _calibration_suspect(capture: Capture, est: Estimate) -> bool:
     """Whether ``est`` (the answer of :func:`_look`) may be a calibration error's: cameras
     (recalibrate.MIN_VIEWS or more) whose masks were sound (finite offsets), and the answer
     ``poor_fit``, or ``hidden`` or ``ambiguous`` with a view that does not meet the tape at
-    its base (BASE_OFFSET_PX, the "ok" answers' base check: the base cannot move)."""
+    its base (BASE_OFFSET_PX, the "ok" answers' base check: the base cannot move), or "ok"
+    with a view that meets it only to more than ``recalibrate.OK_BASE_PX``."""
     if not (SELF_CALIBRATE and len(capture.views) >= recalibrate.MIN_VIEWS
             and bool(np.all(np.isfinite(np.asarray(est.view_offsets_px, float))))):
         return False
     if est.verdict is Verdict.POOR_FIT:
         return True
+    if est.verdict is Verdict.OK:
+        return bool(est.base_offset_px > recalibrate.OK_BASE_PX)
     if est.verdict not in (Verdict.HIDDEN, Verdict.AMBIGUOUS):
         return False
     quads = forward_kinematics(capture.tape, est.angles).quads()
@@ -491,7 +496,8 @@ def _recalibrated(capture: Capture, est: Estimate, config: FitConfig) -> Estimat
     """The answer with every camera's rotation corrected from the views
     (:func:`recalibrate.camera_corrections`, from ``est``'s chain) where it is "ok" and
     explains the views clearly better (its cost at most ``recalibrate.MIN_GAIN`` of
-    ``est``'s), its reason naming the corrections; else ``est``. A correction beyond
+    ``est``'s), its reason naming the corrections; for an "ok" ``est``, where it explains them
+    far better (``recalibrate.OK_MIN_GAIN``), whatever its verdict; else ``est``. A correction beyond
     ``recalibrate.MAX_DEG`` for any camera is not taken. The time of both counts. The answer's nodes and tip are in
     the world frame, which the tape's base anchors; its views' costs and offsets are on the
     corrected cameras."""
@@ -503,12 +509,19 @@ def _recalibrated(capture: Capture, est: Estimate, config: FitConfig) -> Estimat
         return dataclasses.replace(est, time_s=est.time_s + spent)
     # (``callback`` saw the first look's iterations; the corrected look's are in ``trace``.)
     again = _look(recalibrate.corrected(capture, rotations), "default", None, False, config, True)
-    if again.verdict is not Verdict.OK or not again.cost <= recalibrate.MIN_GAIN * est.cost:
+    was_ok = est.verdict is Verdict.OK
+    gain = recalibrate.OK_MIN_GAIN if was_ok else recalibrate.MIN_GAIN
+    if not again.cost <= gain * est.cost or (again.verdict is not Verdict.OK and not was_ok):
         return dataclasses.replace(est, time_s=est.time_s + spent + again.time_s)
     turns = ", ".join(f"{v.camera.name} {d:.2f}" for v, d in zip(capture.views, degrees))
-    # (Not the first answer's reason: its words are read elsewhere, cell.probe.end_measurable.)
-    reason = (f"the cameras turned from their calibration by {turns} deg, fitted to the views (poor_fit with "
-              f"the calibration as given, its worst view {float(np.max(est.view_offsets_px)):.1f} px)")
+    given = (f"its base {est.base_offset_px:.1f} px" if was_ok
+             else f"its worst view {float(np.max(est.view_offsets_px)):.1f} px")
+    corrected = (f"the cameras turned from their calibration by {turns} deg, fitted to the views ({est.verdict.value} "
+                 f"with the calibration as given, {given})")
+    # (Not the first answer's reason: its words are read elsewhere, cell.probe.end_measurable.
+    # An "ok" answer the corrected cameras explain far better but do not judge "ok" is not
+    # acted on: the corrected answer, with its own reason first, stands.)
+    reason = corrected if again.verdict is Verdict.OK else f"{again.verdict_reason}; on {corrected}"
     return dataclasses.replace(again, verdict_reason=reason, time_s=est.time_s + spent + again.time_s)
 
 
@@ -564,7 +577,8 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
                 callback(k, c, a)
     est = Estimate(shape.nodes, angles, tip_position, tip_rotation, combine(view_costs),
                    view_costs, elapsed, method, history, evaluations, verdict, reason, tip_views, alternatives,
-                   trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets)
+                   trace=tuple(trace) if method == "default" else (), view_offsets_px=offsets,
+                   base_offset_px=j.base_px)
     # A second, more thorough look (a larger global search on the widest grid, always)
     # before answering, for an unsure estimate, for an "ok" fold, over the whole tape or at
     # its end (its alternatives, the shapes folded the other way, are weighed afresh), and
@@ -698,7 +712,7 @@ def _cheapest_first(capture: Capture, est: Estimate, first: FirstStage, config: 
         est, nodes=shape.nodes, angles=alt.angles, tip_position=alt.tip_position, tip_rotation=alt.tip_rotation,
         cost=cost, view_costs=view_costs, history=history, verdict=verdict, verdict_reason=reason,
         tip_views=tip_views, alternatives=tuple(others), trace=tuple(est.trace) + (alt.angles,),
-        view_offsets_px=offsets, time_s=est.time_s + time.perf_counter() - start)
+        view_offsets_px=offsets, base_offset_px=j.base_px, time_s=est.time_s + time.perf_counter() - start)
 
 
 def _trace_costs(capture: Capture, trace: list) -> list[float]:

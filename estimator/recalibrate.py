@@ -56,6 +56,20 @@ noisy masks, the calibration right) was ``poor_fit`` 9.0 mm off; corrections of 
 off at 0.985 of the cost. On 100 simulated 3-camera captures with every camera turned 0.25 or
 0.5 deg (seeds 905000-, 906000- with noisy masks, 907000-) the 83 corrected answers that were
 "ok" cost 0.07-0.81 of the first answer (median 0.27) and lay within 3.4 mm of the true tip."""
+OK_BASE_PX = 2.0
+"""An "ok" answer whose model meets the tape at its base (``verdict.BASE_OFFSET_PX``, 3 px) only
+to more than this [px] in some view is estimated again on corrected cameras too: a camera
+turned 0.3 deg can leave the base within 3 px and the tip 8-10 mm off (fresh sweep episodes
+1046113 and 1046125: 2.6-3.0 px at the base, "ok" 7.7-9.6 mm off; corrected 0.2-0.9 mm). On
+calibrated development captures of every kind (1043000-) "ok" answers met the base to at most
+2.9 px, 1-2 % of them above 2 px."""
+OK_MIN_GAIN = 0.6
+"""... and the corrected answer replaces an "ok" one only where its eq.-11 cost is at most this
+fraction of the first's (``MIN_GAIN`` for the others): corrections also fit a right answer a
+little better, and one a little worse. On calibrated development captures corrected "ok"
+answers cost 0.68-1.25 of the first (the 0.68 a part capture 1.0 mm off made 5.2 mm off);
+on simulated ones with both cameras turned 0.3 deg, 0.39-0.65, 0.3-1.5 mm off instead of
+2.8-4.4 mm."""
 ITERATIONS = 20
 RTOL = 1e-4
 

@@ -129,6 +129,10 @@ class Estimate:
     alternatives: tuple[Alternative, ...] = ()
     trace: tuple[np.ndarray, ...] = ()
     view_offsets_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    base_offset_px: float = float("nan")
+    """The worst view's mean boundary distance around the tape's base [px] of an "ok"
+    answer (the base check's measure; NaN where not measured). Not written to JSON: the
+    estimator's own, for self-calibration (``fit._calibration_suspect``)."""
 
     @property
     def actionable(self) -> bool:

@@ -235,6 +235,9 @@ class Judgement:
     hooked_across: bool = False
     """a view that locates the end does so only as a hooked end (:func:`outline_rule`) with
     both of the tip edge's corners at the outline and its middle inside the silhouette"""
+    base_px: float = float("nan")
+    """the worst view's mean boundary distance around the tape's base [px], where the "ok"
+    answers' base check measured it (``estimator.fit``), else NaN"""
 
 
 def _outline(m: np.ndarray) -> tuple[float, float]:

@@ -368,8 +368,8 @@ class _Needle:
         hit = self.touch(label, target, R)
         return None if hit is None else hit[0]
 
-    def clear_past(self, tip: np.ndarray, R: np.ndarray, label: str) -> bool:
-        """Is there no tape within PROBE_PAST_CLEAR_M of the point PROBE_BEYOND_M past the end
+    def clear_past(self, tip: np.ndarray, R: np.ndarray, label: str, beyond: float = PROBE_BEYOND_M) -> bool:
+        """Is there no tape within PROBE_PAST_CLEAR_M of the point ``beyond`` [m] past the end
         at ``tip`` along the trunk of ``R``, a frame the needle's touches measured
         (:meth:`end_frame`), approached along its normal? A "tip" on the tape's body can pass
         the probe past it made along its own frame: in simulated episodes with every camera
@@ -383,7 +383,7 @@ class _Needle:
         in 1034000-, 1035000- and 1037000- (2 cameras; 0.5, 0 and 0.3 deg) touched nothing
         within the needle's reach there. ``label``: the probe's, for the recording; the
         distance [mm] (None: nothing touched) is noted as ``probed_past_mm``."""
-        past = self.distance(label, tip + PROBE_BEYOND_M * R[:, 0], R)
+        past = self.distance(label, tip + beyond * R[:, 0], R)
         if self.notes is not None:
             self.notes.setdefault("probed_past_mm", []).append(None if past is None else round(1e3 * past, 2))
         return past is None or past > PROBE_PAST_CLEAR_M
@@ -807,12 +807,25 @@ def _walk_past(needle: _Needle, tip: np.ndarray, R: np.ndarray, width: float, st
     in order (tape known to go on to ``start`` [m] past it) until one finds no tape
     (nothing within PROBE_CONFIRM_M). Returns (how far past the tip tape was last touched
     [m], the end's frame when an end was found within the steps and its corners are tape
-    there (:meth:`_Needle.end_frame`), else None)."""
+    there (:meth:`_Needle.end_frame`), else None). Where the corners' touches turned that
+    frame, the point past the end along the measured frame must be clear of tape
+    (:meth:`_Needle.clear_past`), as for a confirmed tip, but a step further out (PROBE_BEYOND_M
+    plus the last step: a walked end is known only to a step). Fresh 1046002 (3 cameras
+    turned 0.5 deg) walked 6 mm along a curl whose tape the 9 mm probe met 6.6 mm off, took
+    that as the end, its frame turned 32 deg onto the tape, and tape lay 3.5-7.4 mm from the
+    points 6-15 mm past it along that frame; the grasp went 50 mm from the tape's end. The
+    walked end of 868005 (tests/test_episode.py), 6.8 mm from the tape's, its frame turned 26
+    deg, had tape 2.9 mm from the point 6 mm past it, none 9 mm and farther."""
     last = start
     for d in steps:
         h = needle.touch(f"past the end +{d * 1e3:.0f} mm", tip + d * R[:, 0], R)
         if h is None or h[0] > PROBE_CONFIRM_M:
-            return last, needle.end_frame(tip + last * R[:, 0], R, width)
+            end = tip + last * R[:, 0]
+            frame = needle.end_frame(end, R, width)
+            if (frame is not None and frame is not R
+                    and not needle.clear_past(end, frame, "past the walked end", PROBE_BEYOND_M + d - last)):
+                frame = None
+            return last, frame
         last = d
     return last, None
 

@@ -413,6 +413,23 @@ def test_a_far_grasp_on_a_needle_measured_end_is_planned_about_the_tape_the_need
     assert grasp_station(np.zeros(3), R, {0: touched[0], -1: None, 1: touched[1]})[1] is None
 
 
+def test_a_walked_end_with_tape_past_it_along_its_measured_frame_is_not_grasped(capsys):
+    """Fresh sweep episode 1046002 (3 cameras, each turned 0.5 deg for the estimator): the
+    estimate is "hidden"; one hypothesis' tip is tape and so is the point 6 mm past it, and
+    the needle walked on along a curl (none within 4 mm at 9 mm: the curl had turned away,
+    6.6 mm off). Its corners' touches turned the "end's" frame 32 deg onto the tape, and
+    along that frame tape lies 4.7 mm from the point 9 mm past it (a step further out than
+    a confirmed tip's probe: a walked end is known only to a step). Not an end: refused
+    (before, grasped 50 mm from the tape's end). The walked end of seed 868005 (the test
+    above), its frame turned 26 deg, has no tape there and is grasped."""
+    code = main(["episode", "--seed", "1046002", "--cameras", "3", "--randomize", "calib_rot_deg=0.5"])
+    out, err = capsys.readouterr()
+    doc = json.loads(out)
+    assert doc["outcome"] == "refused", doc
+    assert code == 1, err
+    assert any(d is not None and d <= 12.0 for d in doc["probed_past_mm"]), doc["probed_past_mm"]
+
+
 def test_episode_recording_shows_its_content_on_opening(tmp_path):
     """The real rerun viewer, opened on an episode's recording, shows the camera images and
     the 3-D scene at once (about 2 % of the screen was bright when everything was logged off

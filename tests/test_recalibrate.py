@@ -14,7 +14,7 @@ import tapecell.estimator.fit as fit
 from tapecell.estimator import Verdict, View, estimate, recalibrate
 from tapecell.estimator.metrics import errors
 from tapecell.estimator.synthetic import SyntheticOptions, make_capture
-from tapecell.estimator.verdict import END_UNEXPLAINED, PAST_END
+from tapecell.estimator.verdict import BASE_OFFSET_PX, END_UNEXPLAINED, PAST_END
 
 SEED = 7   # synthetic, 3 cameras: poor_fit 8.0 mm off with every camera turned 0.5 deg, ok 1.1 mm corrected
 
@@ -100,6 +100,46 @@ def test_a_hidden_end_whose_base_is_met_is_not_corrected(monkeypatch):
     est = estimate(capture)
     assert est.verdict is Verdict.HIDDEN
     assert _tip_mm(capture, est) < 1.0
+
+
+def test_an_ok_answer_off_at_its_base_is_estimated_again_on_corrected_cameras(monkeypatch):
+    """Both cameras turned 0.3 deg (seed 214): "ok" 6.9 mm off, its base met to 2.9 px, within
+    the base check's 3 px but above recalibrate.OK_BASE_PX. On the corrected cameras it is
+    "ok" 0.2 mm off at a fifth of the cost; with OK_MIN_GAIN below that ratio the first
+    answer stands."""
+    capture, _ = _turned_capture(214, 2, 0.3)
+    monkeypatch.setattr(recalibrate, "OK_BASE_PX", float("inf"))
+    first = estimate(capture)
+    assert first.verdict is Verdict.OK and _tip_mm(capture, first) > 5.0
+    assert 2.0 < first.base_offset_px <= BASE_OFFSET_PX
+    monkeypatch.setattr(recalibrate, "OK_BASE_PX", 2.0)
+    after = estimate(capture)
+    assert after.verdict is Verdict.OK and "(ok with the calibration as given" in after.verdict_reason
+    assert _tip_mm(capture, after) < 1.0
+    ratio = after.cost / first.cost
+    assert ratio < recalibrate.OK_MIN_GAIN
+    monkeypatch.setattr(recalibrate, "OK_MIN_GAIN", 0.9 * ratio)
+    kept = estimate(capture)
+    assert kept.verdict_reason == first.verdict_reason and np.allclose(kept.tip_position, first.tip_position)
+
+
+def test_a_calibrated_ok_answer_off_at_its_base_keeps_its_answer(monkeypatch):
+    """Clean development capture 1043074 (2 cameras, calibrated): "ok" 0.6 mm off, its base met
+    to 2.7 px. The correction is tried and fits the views a little better (0.89 of the cost),
+    not far better (OK_MIN_GAIN): the answer stands."""
+    capture = make_capture(1043074, SyntheticOptions(cameras=2))
+    calls = []
+    corrections = recalibrate.camera_corrections
+
+    def spy(*a, **k):
+        calls.append(1)
+        return corrections(*a, **k)
+
+    monkeypatch.setattr(recalibrate, "camera_corrections", spy)
+    est = estimate(capture)
+    assert calls == [1]
+    assert est.verdict is Verdict.OK and "turned from their calibration" not in est.verdict_reason
+    assert est.base_offset_px > recalibrate.OK_BASE_PX and _tip_mm(capture, est) < 1.0
 
 
 def test_a_correction_beyond_a_calibration_error_is_not_taken(monkeypatch):
