@@ -130,9 +130,11 @@ class Estimate:
     trace: tuple[np.ndarray, ...] = ()
     view_offsets_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     base_offset_px: float = float("nan")
-    """The worst view's mean boundary distance around the tape's base [px] of an "ok"
-    answer (the base check's measure; NaN where not measured). Not written to JSON: the
-    estimator's own, for self-calibration (``fit._calibration_suspect``)."""
+    """The worst view's mean boundary distance around the tape's base [px] where the base
+    check measured it (answers the first judgement found "ok", whatever they became after;
+    NaN where not measured). Not written to JSON: the estimator's own, read by its
+    self-calibration (``fit._calibration_suspect``) on :func:`estimate`'s own answers alone;
+    the needle's adopted and refitted estimates do not keep it up to date."""
 
     @property
     def actionable(self) -> bool:

@@ -372,7 +372,8 @@ come closer (e.g. 3.5 -> 0.6 mm); on calibrated captures of every bench kind (th
 ranges, ~540 each) it changed no answer. 2.5 px moved two corrected 3-camera answers
 further off (0.55 -> 1.53, 2.21 -> 3.04 mm); 2.0 px refused right ones. What it costs: with
 two cameras, answers turned 0.3 deg (3.5-5.2 px above, 1.2-4.9 mm off) are refused rather
-than grasped (three cameras correct them); and a calibrated part capture whose base the
+than grasped (since 2026-11-27, the twentieth session, two cameras are corrected from the
+views too, anchored at this base: ``estimator.recalibrate``); and a calibrated part capture whose base the
 part half hides can show 3-3.4 px (part-891011, 3.1 px, 3 cameras, refused; none in
 976000-/981000-)."""
 BASE_WINDOW_PX = 40

@@ -583,7 +583,8 @@ def resolve_by_probing(cell, sim_arm, est, width: float, probes: list | None = N
     whose corners are tape.
     Where none is confirmed:
     - the one touched tip with tape on its trunk's line beyond it is walked past
-      (:func:`_walk_past`) to the end;
+      (:func:`_walk_past`) to the end (not an end where the touches turned its trunk and
+      tape lies a step further past it along the measured frame);
     - else, with none touched within PROBE_CONFIRM_M and ``capture`` given, every tip
       touched a few millimetres off (within REFIT_TOUCH_MAX_M) is refitted through its
       touch and probed again, the closest first (:func:`_refit_and_probe`);
@@ -807,8 +808,9 @@ def _walk_past(needle: _Needle, tip: np.ndarray, R: np.ndarray, width: float, st
     in order (tape known to go on to ``start`` [m] past it) until one finds no tape
     (nothing within PROBE_CONFIRM_M). Returns (how far past the tip tape was last touched
     [m], the end's frame when an end was found within the steps and its corners are tape
-    there (:meth:`_Needle.end_frame`), else None). Where the corners' touches turned that
-    frame, the point past the end along the measured frame must be clear of tape
+    there (:meth:`_Needle.end_frame`), else None). Where the touches turned that frame's trunk
+    (by more than TOUCHED_TWIST_DEG; a twist alone keeps the line the walk cleared), the point
+    past the end along the measured frame must be clear of tape
     (:meth:`_Needle.clear_past`), as for a confirmed tip, but a step further out (PROBE_BEYOND_M
     plus the last step: a walked end is known only to a step). Fresh 1046002 (3 cameras
     turned 0.5 deg) walked 6 mm along a curl whose tape the 9 mm probe met 6.6 mm off, took
@@ -822,8 +824,8 @@ def _walk_past(needle: _Needle, tip: np.ndarray, R: np.ndarray, width: float, st
         if h is None or h[0] > PROBE_CONFIRM_M:
             end = tip + last * R[:, 0]
             frame = needle.end_frame(end, R, width)
-            if (frame is not None and frame is not R
-                    and not needle.clear_past(end, frame, "past the walked end", PROBE_BEYOND_M + d - last)):
+            turned = frame is not None and float(frame[:, 0] @ R[:, 0]) < np.cos(np.radians(TOUCHED_TWIST_DEG))
+            if turned and not needle.clear_past(end, frame, "past the walked end", PROBE_BEYOND_M + d - last):
                 frame = None
             return last, frame
         last = d

@@ -401,6 +401,7 @@ def test_a_far_grasp_on_a_needle_measured_end_is_planned_about_the_tape_the_need
     assert doc["verdict_reason"].startswith("hypothesis 0's end measured by the needle")
     assert doc["grasp"]["inset_mm"] > 1e3 * GRASP_CHECKED_M
     assert len(doc["probed_grasp_mm"]) == 3 and doc["probed_grasp_off"]["mm"] > 1e3 * GRASP_RECENTRE_M
+    assert doc["probed_past_mm"] == [None]    # past the walked end along its measured frame: clear
     assert doc["outcome"] == "grasped", doc
     # What the touches say: the offset along the normal at the grasp point, the turn of the
     # line through the three about the tape's width.

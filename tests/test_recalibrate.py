@@ -1,4 +1,4 @@
-"""Camera rotations corrected from the views with three cameras (estimator/recalibrate.py,
+"""Camera rotations corrected from the views (estimator/recalibrate.py,
 fit._recalibrated): a capture whose cameras are each turned 0.5 deg is "ok" near the true
 tip instead of poor_fit; two cameras turned are corrected where the model misses the tape's
 base; calibrated cameras, an answer whose base is met and corrections too large to be a
@@ -121,6 +121,35 @@ def test_an_ok_answer_off_at_its_base_is_estimated_again_on_corrected_cameras(mo
     monkeypatch.setattr(recalibrate, "OK_MIN_GAIN", 0.9 * ratio)
     kept = estimate(capture)
     assert kept.verdict_reason == first.verdict_reason and np.allclose(kept.tip_position, first.tip_position)
+
+
+def test_a_corrected_answer_must_meet_the_base_and_one_not_ok_makes_the_answer_ambiguous(monkeypatch):
+    """Seed 214 as above. The corrected answer replaces the "ok" one only where it meets the
+    base to within OK_BASE_PX (0.35 px here; with OK_BASE_PX 0.3 the first answer stands).
+    Where the corrected cameras explain the views far better but their answer is not "ok"
+    (stood in for: the corrected look's verdict made ``hidden``), the first answer is not
+    acted on: "ambiguous", the corrected shape (0.2 mm off) one of its alternatives, costed on
+    the cameras as calibrated."""
+    capture, _ = _turned_capture(214, 2, 0.3)
+    monkeypatch.setattr(recalibrate, "OK_BASE_PX", float("inf"))
+    first = estimate(capture)
+    monkeypatch.setattr(recalibrate, "OK_BASE_PX", 0.3)
+    kept = estimate(capture)
+    assert kept.verdict is Verdict.OK and np.allclose(kept.tip_position, first.tip_position)
+    monkeypatch.setattr(recalibrate, "OK_BASE_PX", 2.0)
+    look = fit._look
+
+    def corrected_not_ok(c, *a, **k):
+        est = look(c, *a, **k)
+        return est if c is capture else dataclasses.replace(est, verdict=Verdict.HIDDEN, verdict_reason="stood in")
+
+    monkeypatch.setattr(fit, "_look", corrected_not_ok)
+    est = estimate(capture)
+    assert est.verdict is Verdict.AMBIGUOUS and "explain the views far better" in est.verdict_reason
+    assert np.allclose(est.tip_position, first.tip_position)
+    alt = min(est.alternatives, key=lambda a: np.linalg.norm(a.tip_position - capture.truth.tip_position))
+    assert 1e3 * np.linalg.norm(alt.tip_position - capture.truth.tip_position) < 1.0
+    assert alt.cost > est.cost    # on the cameras as calibrated, where the first answer fits best
 
 
 def test_a_calibrated_ok_answer_off_at_its_base_keeps_its_answer(monkeypatch):
