@@ -472,7 +472,7 @@ corrected answer stands where it is "ok" and explains the views clearly better
 is not the model) 1-2 mm worse. Every ``ambiguous`` answer, base or not, made one
 3-camera shell capture turned 0.5 deg "ok" 6.2 mm off; the base asked for, two-camera
 simulated captures with both cameras turned 0.5 deg (development 916500-916529) were "ok" 27
-of 30 (0 before), 0.10-2.26 mm off, 11 of them from ``hidden`` or ``ambiguous``, and 1,886
+of 30 (0 before), 0.10-2.26 mm off, 14 of them from ``hidden`` or ``ambiguous``, and 1,886
 calibrated development captures of every kind (1043000-, 1044000-) gave the same answers."""
 
 

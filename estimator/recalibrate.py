@@ -39,7 +39,7 @@ MIN_VIEWS = 2
 shape explains both views), but not at the base, which cannot move: there the corrected
 rotations are anchored, and the shape follows. (3 until 2026-11-27, on the belief that two
 views leave nothing to correct from; simulated two-camera captures with both cameras turned
-0.5 deg, development seeds 916200-916419: "ok" 0 of 80 before, 59 after, 0.15-5.2 mm off.)"""
+0.5 deg, development seeds 916500-916529: "ok" 0 of 30 before, 27 after, 0.10-2.26 mm off.)"""
 SIGMA_DEG = 0.5
 """The calibration's rotation error the prior expects of a camera [deg] (issue 13's bound)."""
 PRIOR_PX = 3.0
@@ -59,8 +59,9 @@ off at 0.985 of the cost. On 100 simulated 3-camera captures with every camera t
 OK_BASE_PX = 2.0
 """An "ok" answer whose model meets the tape at its base (``verdict.BASE_OFFSET_PX``, 3 px) only
 to more than this [px] in some view is estimated again on corrected cameras too: a camera
-turned 0.3 deg can leave the base within 3 px and the tip 8-10 mm off (fresh sweep episodes
-1046113 and 1046125: 2.6-3.0 px at the base, "ok" 7.7-9.6 mm off; corrected 0.2-0.9 mm). On
+turned 0.3 deg can leave the base within 3 px and the tip 8-10 mm off (sweep episodes
+1046012, 1046113 and 1046125: 2.6-3.0 px at the base, "ok" 7.7-9.6 mm off; corrected 0.2-0.9
+mm). On
 calibrated development captures of every kind (1043000-) "ok" answers met the base to at most
 2.9 px, 1-2 % of them above 2 px."""
 OK_MIN_GAIN = 0.6
