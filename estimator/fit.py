@@ -324,13 +324,15 @@ left 10 px of model the view did not show, and the base check refused right answ
 model is hidden, and the coarse cut hid almost nothing there)."""
 
 
-def _base(capture: Capture, evaluator: CostEvaluator, models: list, quads: np.ndarray) -> np.ndarray:
+def _base(capture: Capture, evaluator: CostEvaluator, models: list | None, quads: np.ndarray) -> np.ndarray:
     """:func:`verdict.base_offsets` of ``quads`` whose seen silhouettes ``models`` are
-    ``evaluator``'s crops; with scene boxes, of the model cut finer where a box hides it
-    (BASE_OCCLUSION_CELLS)."""
+    ``evaluator``'s crops (None: not drawn yet); with scene boxes, of the model cut finer
+    where a box hides it (BASE_OCCLUSION_CELLS)."""
     targets = evaluator.targets
     if capture.scene:
         models = _seen_models(evaluator, quads, BASE_OCCLUSION_CELLS)
+    elif models is None:
+        models = _seen_models(evaluator, quads)
     return base_offsets(capture.views, capture.tape.base_position, [t.observed for t in targets], models,
                         evaluator.model_masks(quads, occluded=False), [(t.x0, t.y0) for t in targets])
 
@@ -492,8 +494,7 @@ def _calibration_suspect(capture: Capture, est: Estimate) -> bool:
     if est.verdict not in (Verdict.HIDDEN, Verdict.AMBIGUOUS):
         return False
     quads = forward_kinematics(capture.tape, est.angles).quads()
-    evaluator, models = _seen_view(capture, quads)
-    return bool(np.max(_base(capture, evaluator, models, quads)) > BASE_OFFSET_PX)
+    return bool(np.max(_base(capture, _evaluator(capture, quads), None, quads)) > BASE_OFFSET_PX)
 
 
 def _recalibrated(capture: Capture, est: Estimate, config: FitConfig) -> Estimate:
