@@ -57,7 +57,8 @@ from .silhouette import OCCLUSION_CELLS, CostEvaluator, combine, make_target, pr
 from .strip import strip_stage
 from .tape import forward_kinematics
 from .verdict import (BASE_OFFSET_PX, DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess,
-                      base_offsets, edgewise_bend, end_on, is_close_alternative, mask_fault, rival_reason, view_offsets)
+                      base_offsets, edgewise_bend, end_on, is_close_alternative, mask_fault, rival_reason, unexplained_cut_px,
+                      view_offsets)
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -289,7 +290,8 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
         strip_offsets = lambda: _offsets(capture, strip_quads, strip_view())  # noqa: E731
     j = assess(capture.views, capture.scene, capture.tape.width, view_costs, [t.observed for t in targets],
                models, [(t.x0, t.y0) for t in targets], tip_position, tip_rotation, best_cost,
-               [(a.cost, a.tip_position) for a in near], strip_offsets)
+               [(a.cost, a.tip_position) for a in near], strip_offsets,
+               _cut_px(capture, evaluator, shape, tip_position, tip_rotation) if capture.scene else None)
     verdict, reason = j.verdict, j.reason
     base_px = float("nan")
     if verdict is Verdict.OK:
@@ -312,6 +314,29 @@ def _judge(capture: Capture, evaluator: CostEvaluator, view_costs: np.ndarray, s
             verdict, reason = Verdict.POOR_FIT, (f"the shape {EDGEWISE} by {bend:.0f} deg at joint {joint} (> "
                                                  f"{EDGEWISE_MAX_DEG:g} deg): not a shape a tape takes")
     return dataclasses.replace(j, verdict=verdict, reason=reason, base_px=base_px), tuple(near)
+
+
+def _cut_px(capture: Capture, evaluator: CostEvaluator, shape, tip_position: np.ndarray,
+            tip_rotation: np.ndarray):
+    """view k -> :func:`verdict.unexplained_cut_px` of ``shape`` (its tip frame
+    ``tip_position``, ``tip_rotation``) in ``evaluator``'s crops; the chain before its last
+    plate drawn (cut finely, BASE_OCCLUSION_CELLS) only where a view asks."""
+    body = shape.quads()[:-1]
+    half = 0.5 * capture.tape.width * tip_rotation[:, 1]
+    tip_edge = np.array([tip_position - half, tip_position + half])
+    base_edge = np.array([shape.left[0], shape.right[0]])
+
+    @functools.cache
+    def body_hidden() -> list[np.ndarray]:
+        seen = _seen_models(evaluator, body, BASE_OCCLUSION_CELLS)
+        return [full & (1 - s) for full, s in zip(evaluator.model_masks(body, occluded=False), seen)]
+
+    def cut_px(k: int) -> int:
+        t = evaluator.targets[k]
+        return unexplained_cut_px(capture.views[k], capture.scene, t.observed, (t.x0, t.y0), base_edge, tip_edge,
+                                  lambda: body_hidden()[k])
+
+    return cut_px
 
 
 BASE_OCCLUSION_CELLS = 12

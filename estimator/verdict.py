@@ -15,7 +15,8 @@ Three questions, each judged so that a threshold means the same with 2 or 3 came
 - Do two cameras locate the free end? The estimate's last ``TIP_SPAN_M`` of centre line
   and its tip corners are projected into each view; a view locates the free end when at
   least ``TIP_SEEN_FRACTION`` of those points fall inside the image, outside its ignore
-  mask and in front of every scene box; the end stands against the background there (the
+  mask and in front of every scene box; the view does not show the tape going behind a
+  scene box where the model does not (``BOX_CUT_PX``); the end stands against the background there (the
   tip edge's middle and both corners within ``EDGE_PX`` of observed background, or a
   stretch of it from a corner within ``EDGE_RUN_PX`` of background and ``EDGE_RUN_TAPE_PX`` of
   observed tape: a tip over the tape's own body is not located by that
@@ -49,7 +50,7 @@ from .capture import View
 from .occlusion import hidden
 from .result import Verdict
 from .scene import Box
-from .views import box_outline_mask, box_outline_px
+from .views import box_hulls, box_outline_mask, box_outline_px
 
 POOR_OFFSET_PX = 2.5
 """Mean boundary distance [px] in a view above which the fit does not explain it. 3.0 until
@@ -159,6 +160,80 @@ px and more (52 of 98 at most 7.5), those of answers more than 5 mm off 8.5 px a
 (calib_rot-976018, 5.2 mm; shell-c3-964019, 32 mm, 10.0 px); 11 px made an answer 8.7 mm
 off "ok" (shell-c3-964007). 7.5 px turned 18 needless refusals of 2,283 captures "ok", no
 wrong one."""
+BOX_CUT_PX = 12
+"""A view does not locate the free end where its observed tape goes behind a scene box over
+at least this many pixels of outline (BOX_CUT_RING_PX) that the model does not account
+for (BOX_CUT_EXPLAINED_PX): the tape goes on there, out of that camera's sight, and the
+end the model shows the view may be a fold of the tape's side, not its end (a wrong "ok"
+56.5 mm off, shell-c2-1052024: the part hid the tape's lower end in both views; the model
+folded its last plate so that its tip edge ran down the silhouette's side, and one view
+showed the tape's leg going behind the part over 28 px of outline, 23 px of it away from
+the model's tip edge and body). On the development captures of 1043000- and 1044000- (97
+part, 160 chain and 130 shell captures) no right "ok" showed any (their raw cuts, up to 26
+px, lay along tip edges ending at the part's outline; a corner of the end touching a box
+makes 8 px), and no answer changed."""
+BOX_CUT_RING_PX = 3
+"""The observed outline goes behind a box where it lies outside the box's projected outline
+and within this many pixels of it, with background (the box) and no observed tape across
+the outline within this of it (plus a pixel for the tape): a tape that passes in front of
+the box's edge is over the box's projection there."""
+BOX_CUT_EXPLAINED_PX = 6
+"""... except within this many pixels of the model's base edge, of its tip edge (the end's
+own edge ending at the box's outline: the outline rules judge it, ``BOX_OUTLINE_PX``), or of
+where the model's chain before its last plate goes behind a box too (the model's tape going
+on behind it there; its last plate alone folded behind the box does not count)."""
+
+
+def _box_hulls_mask(view: View, boxes: Sequence[Box], shape: tuple[int, int], origin: tuple[int, int]) -> np.ndarray:
+    """uint8 0/1 crop (top-left pixel ``origin``) of the scene boxes' projected outlines,
+    filled (the convex hulls of :func:`views.box_outline_px`)."""
+    mask = np.zeros(shape, np.uint8)
+    for hull in box_hulls(view.camera, boxes):
+        hull = hull[:, 0] - np.asarray(origin, np.float32)
+        if np.all(np.isfinite(hull)) and np.all(np.abs(hull) < 1e6):
+            cv2.fillConvexPoly(mask, np.rint(hull).astype(np.int32), 1)
+    return mask
+
+
+def box_cuts(view: View, boxes: Sequence[Box], observed: np.ndarray, origin: tuple[int, int]) -> np.ndarray:
+    """uint8 0/1 crop of the observed outline pixels where the tape goes behind a scene box
+    (BOX_CUT_RING_PX): ``observed`` the view's silhouette crop whose top-left pixel is
+    ``origin``."""
+    boxes_px = _box_hulls_mask(view, boxes, observed.shape, origin)
+    if not boxes_px.any():
+        return boxes_px
+    obs = observed.astype(np.uint8)
+    ring = _disc(BOX_CUT_RING_PX).astype(np.uint8)
+    outline = obs & (1 - cv2.erode(obs, np.ones((3, 3), np.uint8)))
+    beside = cv2.dilate(boxes_px, ring) & (1 - boxes_px)
+    across_background = cv2.dilate(boxes_px & (1 - obs), ring)
+    across_tape = cv2.dilate(boxes_px & obs, _disc(BOX_CUT_RING_PX + 1).astype(np.uint8))
+    return outline & beside & across_background & (1 - across_tape)
+
+
+def unexplained_cut_px(view: View, boxes: Sequence[Box], observed: np.ndarray, origin: tuple[int, int],
+                       base_edge: np.ndarray, tip_edge: np.ndarray,
+                       body_hidden: Callable[[], np.ndarray]) -> int:
+    """How many pixels of ``view``'s observed outline go behind a scene box (:func:`box_cuts`)
+    away from the model (BOX_CUT_EXPLAINED_PX): from its base edge and its tip edge (each (2,
+    3), corner to corner) and from ``body_hidden()``, the crop's pixels where a box hides
+    the model's chain before its last plate (drawn only when asked)."""
+    cuts = box_cuts(view, boxes, observed, origin)
+    if int(np.count_nonzero(cuts)) < BOX_CUT_PX:
+        return int(np.count_nonzero(cuts))
+    r = BOX_CUT_EXPLAINED_PX
+    explained = np.zeros_like(cuts)
+    for edge in (base_edge, tip_edge):
+        uv = np.rint(view.camera.project(np.asarray(edge, float)) - np.asarray(origin, float))
+        if np.all(np.isfinite(uv)) and np.all(np.abs(uv) < 1e6):
+            a, b = (tuple(int(x) for x in p) for p in uv.astype(np.int64))
+            cv2.line(explained, a, b, 1, 2 * r + 1)
+    hidden_px = body_hidden()
+    if hidden_px.any():
+        explained |= cv2.dilate(hidden_px, _disc(r).astype(np.uint8))
+    return int(np.count_nonzero(cuts & (1 - explained)))
+
+
 PAST_END = "shows tape past the model's end"
 """The words of a ``poor_fit`` reason for tape going on past the model's end (the rest of
 the shape explains the views): a robot with a needle may measure where the end is."""
@@ -789,14 +864,16 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
            observed: Sequence[np.ndarray], models: Sequence[np.ndarray], origins: Sequence[tuple[int, int]],
            tip_position: np.ndarray, tip_rotation: np.ndarray, best_cost: float,
            alternatives: Sequence[tuple[float, np.ndarray]],
-           strip_offsets: Callable[[], np.ndarray] | None = None) -> Judgement:
+           strip_offsets: Callable[[], np.ndarray] | None = None,
+           cut_px: Callable[[int], int] | None = None) -> Judgement:
     """The whole judgement of an estimate (see the module's text). ``observed``, ``models``:
     each view's observed silhouette (ignored pixels cleared) and the estimate's, as uint8
     0/1 crops whose top-left pixels are ``origins``; ``view_costs``: eq. 7 per view.
     ``strip_offsets``: () -> the per-view mean boundary distances [px] of the strip the tip
     frame comes from (the estimator's strip stage), which stand for the plate chain's where
     these do not explain a view and the strip's worst view is better explained (see
-    :func:`explaining_offsets`)."""
+    :func:`explaining_offsets`). ``cut_px``: view k -> :func:`unexplained_cut_px` of the
+    estimate in it (asked only of views that would locate the end; None: no scene boxes)."""
     plate_offsets = box_edge_offsets(views, boxes, observed, models, origins,
                                      view_offsets(view_costs, observed, models))
     offsets = explaining_offsets(plate_offsets, strip_offsets)
@@ -824,7 +901,8 @@ def assess(views: Sequence[View], boxes: Sequence[Box], width: float, view_costs
     # coincides with the model's was tried as locating the end: on fresh shell captures it
     # let through an "ok" 81 mm off.)
     candidates = [s_ and x <= LOCATE_UNEXPLAINED_PX and _clear_of_border(v, o, xy, edge)
-                  for s_, x, v, o, xy in zip(seen, extra, views, observed, origins)]
+                  and (cut_px is None or cut_px(k) < BOX_CUT_PX)
+                  for k, (s_, x, v, o, xy) in enumerate(zip(seen, extra, views, observed, origins))]
     thin = [c and _thin_at(o, xy, tip) for c, o, xy, tip in zip(candidates, observed, origins, tips)]
     locates = [c and not t for c, t in zip(candidates, thin)]
     if any(locates) and any(thin):

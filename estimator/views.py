@@ -160,7 +160,7 @@ def _on_box_outline(camera: Camera, boxes, points: np.ndarray, cfg: FitConfig) -
 _BOX_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
 
 
-def _box_hulls(camera: Camera, boxes):
+def box_hulls(camera: Camera, boxes):
     """Each scene box's projected outline in ``camera``: the convex hull (c, 1, 2) float32 of
     its projected corners [px]; a box with a corner behind the camera is left out."""
     for box in boxes:
@@ -174,7 +174,7 @@ def box_outline_px(camera: Camera, boxes, points: np.ndarray) -> np.ndarray:
     outline (the convex hull of its projected corners; inf without boxes, or for a box with
     a corner behind the camera, or for a point that is not finite)."""
     out = np.full(len(points), np.inf)
-    for hull in _box_hulls(camera, boxes):
+    for hull in box_hulls(camera, boxes):
         for k, (u, v) in enumerate(points):
             if np.isfinite(u) and np.isfinite(v):
                 out[k] = min(out[k], abs(cv2.pointPolygonTest(hull, (float(u), float(v)), True)))
@@ -189,7 +189,7 @@ def box_outline_mask(camera: Camera, boxes, shape: tuple[int, int], origin: tupl
     left out. (The outline drawn one pixel wide, then each pixel's Euclidean distance to
     it: a thick line of OpenCV's reaches a pixel or two farther at its round ends.)"""
     line = np.zeros(shape, np.uint8)
-    for hull in _box_hulls(camera, boxes):
+    for hull in box_hulls(camera, boxes):
         hull = hull[:, 0] - np.asarray(origin, np.float32)
         if np.all(np.isfinite(hull)) and np.all(np.abs(hull) < 1e6):
             cv2.polylines(line, [np.rint(hull).astype(np.int32)], True, 1)
