@@ -328,10 +328,10 @@ def _cut_px(capture: Capture, evaluator: CostEvaluator, shape, tip_position: np.
 
     @functools.cache
     def body_hidden() -> list[np.ndarray]:
-        seen = _seen_models(evaluator, body, BASE_OCCLUSION_CELLS)
+        seen = evaluator.model_masks(body, cells=BASE_OCCLUSION_CELLS)      # boxes only, not ignore masks
         return [full & (1 - s) for full, s in zip(evaluator.model_masks(body, occluded=False), seen)]
 
-    def cut_px(k: int) -> int:
+    def cut_px(k: int) -> float:
         t = evaluator.targets[k]
         return unexplained_cut_px(capture.views[k], capture.scene, t.observed, (t.x0, t.y0), base_edge, tip_edge,
                                   lambda: body_hidden()[k])
