@@ -52,6 +52,7 @@ from .errors import EstimateError
 from .geometry import Camera
 from .refine import curls, hooks, hypotheses, mirrors, refine, variants
 from .result import Alternative, CostHistory, Estimate, Verdict
+from .solver import levenberg_marquardt
 from .search import beam_search
 from .silhouette import OCCLUSION_CELLS, CostEvaluator, combine, make_target, project_quads
 from .strip import strip_stage
@@ -88,6 +89,7 @@ class FirstStage:
         if c2 < cost:
             angles, trace, cost = a2, t2, c2
         self.angles, self.trace, self.cost, self.pool = angles, trace, cost, pool
+        self.chain, self.silhouette_costs = chain, silhouette_costs
         self.evaluations = evaluator.evaluations
         self._strips: dict = {}
 
@@ -643,7 +645,9 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     # of the plate chain: it gets the look a poor fit gets.
     unsure = verdict in (Verdict.POOR_FIT, Verdict.AMBIGUOUS, Verdict.HIDDEN) or (ok and j.by_strip)
     across = ok and HOOKED_ACROSS_LOOK and j.hooked_across
-    if method == "default" and second_look and not thorough and (folded or seen_end_on or unsure or rough or across):
+    looked = method == "default" and second_look and not thorough and (folded or seen_end_on or unsure or rough
+                                                                       or across)
+    if looked:
         # An "ok" estimate (a fold, an end seen end-on, a rough view) gets a smaller thorough beam
         # (FitConfig.fold_beam).
         look = dataclasses.replace(config, thorough_beam=config.fold_beam) if ok and not j.by_strip else config
@@ -654,7 +658,78 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
             look = dataclasses.replace(look, hook_bends=())
         second = _look(capture, method, None, True, look, True, first, final=False)
         est = dataclasses.replace(_second_look(est, second, folded), time_s=est.time_s + second.time_s)
+    if final and looked and DEPTH_PROBES and est.verdict is Verdict.OK:
+        est = _probed(capture, est, first, config)
     return _cheapest_first(capture, est, first, config) if final and method == "default" else est
+
+
+DEPTH_PROBES = True
+"""An "ok" answer that got the second look (a fold, an end a camera sees end-on, a view
+explained only roughly, an end located as a hook across its tip edge) is probed in depth
+before it is given: the plate chain refitted from it with its end pulled to its tip moved
+DEPTH_PROBE_M along each camera's line of sight to it, either way, then let go
+(:func:`_depth_probes`). A probe that ends more than DISTINCT_TIP_M from the answer and
+explains the views nearly as well (``verdict.is_close_alternative``) is a rival the searches
+missed: the answer is ``ambiguous`` (and where the rival explains the views better, it
+becomes the answer, :func:`_cheapest_first`). Fresh shell-c2-1061012 (2 cameras, an arch
+whose end hangs beside its base) was "ok" 16.3 mm off; a probe along one camera's line of
+sight found a shape 3.4 mm from the true end at 0.91 of the answer's cost."""
+DEPTH_PROBE_M = 0.012
+"""How far [m] the probes move the answer's tip along each camera's line of sight (more than
+DISTINCT_TIP_M: a shape that stays there is a distinct one)."""
+DEPTH_PROBE_PX_PER_M = 20000.0
+"""Residual [px] per metre between a probe's chain end and its point while it is pulled
+there (as the needle's touch, ``touch.TOUCH_PX_PER_M``)."""
+DEPTH_PROBE_ITERATIONS = 8
+"""Levenberg-Marquardt iterations pulling the probes, and again letting them go."""
+
+
+def _depth_probes(capture: Capture, first: FirstStage, est: Estimate, config: FitConfig) -> list:
+    """The plate chains refitted from ``est``'s with their ends pulled to its tip moved
+    DEPTH_PROBE_M along each camera's line of sight, either way, then let go: [(eq.-11
+    cost, angles (n, 3))], all refined together."""
+    chain = first.chain
+    points = []
+    for v in capture.views:
+        ray = est.tip_position - v.camera.center
+        ray = ray / max(float(np.linalg.norm(ray)), 1e-12)
+        points += [est.tip_position - DEPTH_PROBE_M * ray, est.tip_position + DEPTH_PROBE_M * ray]
+    points = np.array(points)
+    end = chain.samples + chain.n                  # P_C[n] among the chain's points
+
+    def pulled(which: np.ndarray, params: np.ndarray):
+        pts, J = chain.points(params.reshape(len(params), chain.n, 3), True)
+        return (DEPTH_PROBE_PX_PER_M * (pts[:, end] - points[which]),
+                DEPTH_PROBE_PX_PER_M * J[:, end])
+
+    start = np.repeat(np.asarray(est.angles, float).reshape(1, -1), len(points), axis=0)
+    params, _, _ = levenberg_marquardt(chain, first.fields, start, DEPTH_PROBE_ITERATIONS, cfg=config, extra=pulled)
+    params, _, _ = levenberg_marquardt(chain, first.fields, params, DEPTH_PROBE_ITERATIONS, cfg=config)
+    angles = params.reshape(len(points), chain.n, 3)
+    return list(zip(first.silhouette_costs(angles).tolist(), angles))
+
+
+def _probed(capture: Capture, est: Estimate, first: FirstStage, config: FitConfig) -> Estimate:
+    """``est`` ("ok") after its depth probes (DEPTH_PROBES): ``ambiguous``, with the
+    probes that end more than DISTINCT_TIP_M from it and from each other and explain the
+    views nearly as well among its alternatives, where there are any. The time counts."""
+    start = time.perf_counter()
+    tips = [est.tip_position] + [a.tip_position for a in est.alternatives]
+    rivals = []
+    for cost, angles in sorted(_depth_probes(capture, first, est, config), key=lambda x: x[0]):
+        if not is_close_alternative(cost, est.cost):
+            break
+        shape = forward_kinematics(capture.tape, angles)
+        if all(np.linalg.norm(shape.nodes[-1] - t) > DISTINCT_TIP_M for t in tips):
+            rivals.append(Alternative(cost, shape.nodes[-1].copy(), shape.frames[-1].copy(), angles))
+            tips.append(shape.nodes[-1])
+    spent = time.perf_counter() - start
+    if not rivals:
+        return dataclasses.replace(est, time_s=est.time_s + spent)
+    alternatives = tuple(sorted(list(est.alternatives) + rivals, key=lambda a: a.cost))
+    reason = rival_reason(est.cost, est.tip_position, [(a.cost, a.tip_position) for a in rivals])
+    return dataclasses.replace(est, alternatives=alternatives, verdict=Verdict.AMBIGUOUS, verdict_reason=reason,
+                               time_s=est.time_s + spent)
 
 
 def _within_guard(capture: Capture, chains: list, plate_cost: float, config: FitConfig):

@@ -16,17 +16,27 @@ from .views import Field
 
 
 def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, iterations: int,
-                        log: list | None = None, state=None, cfg: FitConfig = DEFAULT):
+                        log: list | None = None, state=None, cfg: FitConfig = DEFAULT, extra=None):
     """Robust (IRLS) Levenberg-Marquardt on a batch of (B, P) parameter vectors (see
     :func:`estimator.residuals.residuals`) at once. ``state``: (residuals, Jacobian, cost) at ``params`` when
     already known. Returns (params (B, P), robust cost (B,), final state); appends to ``log``
     each iteration's (candidates still iterated (k,), their parameters (k, P)), from which
-    :func:`trace` reads one candidate's iterates."""
+    :func:`trace` reads one candidate's iterates. ``extra``: (candidates (k,), their
+    parameters (k, P)) -> (residuals (k, e), Jacobian (k, e, P)), rows appended to the
+    views' (their half squared sum added to the cost)."""
     params = np.array(params, float)
     B, N = params.shape
     na = 3 * chain.n
     diag = np.arange(N)
-    r, J, cost = residuals(chain, fields, params, True, cfg) if state is None else (s.copy() for s in state)
+
+    def residuals_at(which: np.ndarray, p: np.ndarray):
+        r, J, cost = residuals(chain, fields, p, True, cfg)
+        if extra is None:
+            return r, J, cost
+        re, Je = extra(which, p)
+        return np.concatenate([r, re], axis=1), np.concatenate([J, Je], axis=1), cost + 0.5 * np.sum(re * re, axis=1)
+
+    r, J, cost = residuals_at(np.arange(B), params) if state is None else (s.copy() for s in state)
     mu = np.full(B, 1e-3)
     active = np.arange(B)
     for _ in range(iterations):
@@ -40,7 +50,7 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
         A[:, diag, diag] += damp
         step = np.linalg.solve(A, -g[..., None])[..., 0]
         trial = params[active] + step
-        r2, J2, c2 = residuals(chain, fields, trial, True, cfg)
+        r2, J2, c2 = residuals_at(active, trial)
         ok = c2 < cost[active]
         # Converged when a step gains less than RTOL of the cost (its noise floor).
         flat = ok & (cost[active] - c2 < cfg.lm_rtol * cost[active])

@@ -1221,3 +1221,22 @@ def test_an_end_folded_along_the_side_of_a_tape_going_on_behind_the_part_is_not_
     est = estimate(good)
     assert est.verdict is Verdict.OK, est.verdict_reason
     assert _tip_mm(good, est) < 1.0
+
+
+def test_an_ok_answer_probed_in_depth_is_ambiguous_where_a_shape_the_searches_missed_ends_elsewhere(monkeypatch):
+    """Shell tape 1061012 (2 cameras, a fresh bench capture of 2026-11-27): an arch whose end
+    hangs beside its base; the searches answered "ok" 16.3 mm off. Its depth probes
+    (fit.DEPTH_PROBES: the plate chain refitted with its end pulled along each camera's line
+    of sight, then let go) find a shape ending 13 mm away that explains the views better: it
+    becomes the answer (3.4 mm off), ambiguous with the old one. Without the probes, the
+    wrong "ok"."""
+    from tapecell.estimator import fit, load_capture
+
+    capture = load_capture(DATA / "sim-shell-c2-1061012")
+    est = estimate(capture)
+    assert est.verdict is Verdict.AMBIGUOUS, est.verdict_reason
+    assert _tip_mm(capture, est) < 5.0
+    assert any(np.linalg.norm(a.tip_position - est.tip_position) > 0.010 for a in est.alternatives)
+    monkeypatch.setattr(fit, "DEPTH_PROBES", False)
+    before = estimate(capture)
+    assert before.verdict is Verdict.OK and _tip_mm(capture, before) > 10.0
