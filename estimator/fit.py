@@ -669,11 +669,15 @@ explained only roughly, an end located as a hook across its tip edge) is probed 
 before it is given: the plate chain refitted from it with its end pulled to its tip moved
 DEPTH_PROBE_M along each camera's line of sight to it, either way, then let go
 (:func:`_depth_probes`). A probe that ends more than DISTINCT_TIP_M from the answer and
-explains the views nearly as well (``verdict.is_close_alternative``) is a rival the searches
-missed: the answer is ``ambiguous`` (and where the rival explains the views better, it
-becomes the answer, :func:`_cheapest_first`). Fresh shell-c2-1061012 (2 cameras, an arch
-whose end hangs beside its base) was "ok" 16.3 mm off; a probe along one camera's line of
-sight found a shape 3.4 mm from the true end at 0.91 of the answer's cost."""
+explains the views better (a lower eq.-11 cost) is a shape the searches missed: the answer
+is ``ambiguous``, and the probe becomes the answer where the chain the estimator outputs
+from it explains them better too (:func:`_cheapest_first`). Fresh shell-c2-1061012 (2
+cameras, an arch whose end hangs beside its base) was "ok" 16.3 mm off: a probe along one
+camera's line of sight found a shape 3.4 mm from the true end at 0.91 of the answer's cost;
+fresh part-1052042, "ok" 14.8 mm off, probes at 0.81-0.88. (Probes within the ambiguity
+margin but costlier, ``verdict.is_close_alternative``, made two right 3-camera shell answers
+of the development captures 1044000- and 1061000- ``ambiguous``, at 1.02 and 1.25 of their
+costs.)"""
 DEPTH_PROBE_M = 0.012
 """How far [m] the probes move the answer's tip along each camera's line of sight (more than
 DISTINCT_TIP_M: a shape that stays there is a distinct one)."""
@@ -712,12 +716,12 @@ def _depth_probes(capture: Capture, first: FirstStage, est: Estimate, config: Fi
 def _probed(capture: Capture, est: Estimate, first: FirstStage, config: FitConfig) -> Estimate:
     """``est`` ("ok") after its depth probes (DEPTH_PROBES): ``ambiguous``, with the
     probes that end more than DISTINCT_TIP_M from it and from each other and explain the
-    views nearly as well among its alternatives, where there are any. The time counts."""
+    views better than it among its alternatives, where there are any. The time counts."""
     start = time.perf_counter()
     tips = [est.tip_position] + [a.tip_position for a in est.alternatives]
     rivals = []
     for cost, angles in sorted(_depth_probes(capture, first, est, config), key=lambda x: x[0]):
-        if not is_close_alternative(cost, est.cost):
+        if cost >= est.cost:
             break
         shape = forward_kinematics(capture.tape, angles)
         if all(np.linalg.norm(shape.nodes[-1] - t) > DISTINCT_TIP_M for t in tips):
