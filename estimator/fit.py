@@ -70,7 +70,8 @@ class FirstStage:
     and the second, thorough one (:func:`estimate`): the views' preparation, the global
     search on the default grid, its refinement and the winner's mirrors (none of them
     depends on ``thorough``), and the strip stage of each plate fit (a function of its
-    angles alone)."""
+    angles alone); its ``chain`` and ``silhouette_costs`` (eq. 11 of (B, n, 3) angles on
+    its prepared views) serve the depth probes."""
 
     def __init__(self, capture: Capture, chain: Chain, cfg: FitConfig):
         self.fields = [prepare(v, capture.scene, cfg) for v in capture.views]
@@ -664,12 +665,13 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
 
 
 DEPTH_PROBES = True
-"""An "ok" answer that got the second look (a fold, an end a camera sees end-on, a view
-explained only roughly, an end located as a hook across its tip edge) is probed in depth
-before it is given: the plate chain refitted from it with its end pulled to its tip moved
+"""An answer "ok" after the second look (whatever sent it there: a fold, an end a camera sees
+end-on, a view explained only roughly, an end located as a hook across its tip edge, an
+unsure first answer) is probed in depth before it is given: the plate chain refitted from it with its end pulled to its tip moved
 DEPTH_PROBE_M along each camera's line of sight to it, either way, then let go
 (:func:`_depth_probes`). A probe that ends more than DISTINCT_TIP_M from the answer and
-explains the views better (a lower eq.-11 cost) is a shape the searches missed: the answer
+explains the views better (a lower eq.-11 cost, the answer's chain costed on the same
+masks) is a shape the searches missed: the answer
 is ``ambiguous``, and the probe becomes the answer where the chain the estimator outputs
 from it explains them better too (:func:`_cheapest_first`). Fresh shell-c2-1061012 (2
 cameras, an arch whose end hangs beside its base) was "ok" 16.3 mm off: a probe along one
@@ -677,7 +679,9 @@ camera's line of sight found a shape 3.4 mm from the true end at 0.91 of the ans
 fresh part-1052042, "ok" 14.8 mm off, probes at 0.81-0.88. (Probes within the ambiguity
 margin but costlier, ``verdict.is_close_alternative``, made two right 3-camera shell answers
 of the development captures 1044000- and 1061000- ``ambiguous``, at 1.02 and 1.25 of their
-costs.)"""
+costs.) An answer made ``ambiguous`` here is no longer an "ok" one the cameras' correction
+tries for a base met only roughly (``_calibration_suspect``): it is corrected only where
+its base is off by more than BASE_OFFSET_PX, as other unsure answers."""
 DEPTH_PROBE_M = 0.012
 """How far [m] the probes move the answer's tip along each camera's line of sight (more than
 DISTINCT_TIP_M: a shape that stays there is a distinct one)."""
@@ -719,9 +723,12 @@ def _probed(capture: Capture, est: Estimate, first: FirstStage, config: FitConfi
     views better than it among its alternatives, where there are any. The time counts."""
     start = time.perf_counter()
     tips = [est.tip_position] + [a.tip_position for a in est.alternatives]
+    # The answer's chain costed as the probes are (the first stage's cleaned masks and
+    # crops, which may differ from the answer's own by a few per cent on noisy masks).
+    own = float(first.silhouette_costs(np.asarray(est.angles, float)[None])[0])
     rivals = []
     for cost, angles in sorted(_depth_probes(capture, first, est, config), key=lambda x: x[0]):
-        if cost >= est.cost:
+        if cost >= own:
             break
         shape = forward_kinematics(capture.tape, angles)
         if all(np.linalg.norm(shape.nodes[-1] - t) > DISTINCT_TIP_M for t in tips):

