@@ -52,14 +52,14 @@ from .errors import EstimateError
 from .geometry import Camera
 from .refine import curls, hooks, hypotheses, mirrors, refine, variants
 from .result import Alternative, CostHistory, Estimate, Verdict
-from .solver import levenberg_marquardt
 from .search import beam_search
 from .silhouette import OCCLUSION_CELLS, CostEvaluator, combine, make_target, project_quads
+from .solver import levenberg_marquardt
 from .strip import strip_stage
 from .tape import forward_kinematics
 from .verdict import (BASE_OFFSET_PX, DISTINCT_TIP_M, EDGEWISE, EDGEWISE_MAX_DEG, END_FOLD_DEG, FOLD_DEG, assess,
-                      base_offsets, edgewise_bend, end_on, is_close_alternative, mask_fault, rival_reason, unexplained_cut_px,
-                      view_offsets)
+                      base_offsets, edgewise_bend, end_on, is_close_alternative, mask_fault, rival_reason,
+                      unexplained_cut_px, view_offsets)
 from .views import prepare
 
 Callback = Callable[[int, float, np.ndarray], None]
@@ -667,21 +667,21 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
 DEPTH_PROBES = True
 """An answer "ok" after the second look (whatever sent it there: a fold, an end a camera sees
 end-on, a view explained only roughly, an end located as a hook across its tip edge, an
-unsure first answer) is probed in depth before it is given: the plate chain refitted from it with its end pulled to its tip moved
-DEPTH_PROBE_M along each camera's line of sight to it, either way, then let go
-(:func:`_depth_probes`). A probe that ends more than DISTINCT_TIP_M from the answer and
-explains the views better (a lower eq.-11 cost, the answer's chain costed on the same
-masks) is a shape the searches missed: the answer
-is ``ambiguous``, and the probe becomes the answer where the chain the estimator outputs
-from it explains them better too (:func:`_cheapest_first`). Fresh shell-c2-1061012 (2
-cameras, an arch whose end hangs beside its base) was "ok" 16.3 mm off: a probe along one
-camera's line of sight found a shape 3.4 mm from the true end at 0.91 of the answer's cost;
-fresh part-1052042, "ok" 14.8 mm off, probes at 0.81-0.88. (Probes within the ambiguity
-margin but costlier, ``verdict.is_close_alternative``, made two right 3-camera shell answers
-of the development captures 1044000- and 1061000- ``ambiguous``, at 1.02 and 1.25 of their
+unsure first answer) is probed in depth before it is given: the plate chain refitted from
+it with its end pulled to its tip moved DEPTH_PROBE_M along each camera's line of sight to
+it, either way, then let go (:func:`_depth_probes`). A probe that ends more than
+DISTINCT_TIP_M from the answer and explains the views better (a lower eq.-11 cost, the
+answer's chain costed on the same masks) is a shape the searches missed: the answer is
+``ambiguous``, and the probe becomes the answer where the chain the estimator outputs from
+it explains them better too (:func:`_cheapest_first`). Fresh shell-c2-1061012 (2 cameras,
+an arch whose end hangs beside its base) was "ok" 16.3 mm off: a probe along one camera's
+line of sight found a shape 3.4 mm from the true end at 0.91 of the answer's cost; fresh
+part-1052042, "ok" 14.8 mm off, probes at 0.81-0.88. (Probes within the ambiguity margin
+but costlier, ``verdict.is_close_alternative``, made two right 3-camera shell answers of
+the development captures 1044000- and 1061000- ``ambiguous``, at 1.02 and 1.25 of their
 costs.) An answer made ``ambiguous`` here is no longer an "ok" one the cameras' correction
 tries for a base met only roughly (``_calibration_suspect``): it is corrected only where
-its base is off by more than BASE_OFFSET_PX, as other unsure answers."""
+its base is off by more than BASE_OFFSET_PX, as other unsure answers. Off: no probes."""
 DEPTH_PROBE_M = 0.012
 """How far [m] the probes move the answer's tip along each camera's line of sight (more than
 DISTINCT_TIP_M: a shape that stays there is a distinct one)."""
