@@ -7,7 +7,10 @@ per kind of capture, on captures made fresh from a seed range.
 
 Kinds (synthetic, by the estimator's own renderer): clean, noisy, calib (about 2 px of
 calibration error), calib_rot (each camera turned by up to 0.5 deg and its principal point
-moved by up to 2 px), occluded (an arm band with its ignore mask), distorted (lens
+moved by up to 2 px; turned with its translation t kept, so about the world's origin, which
+also moves its centre by up to ~7 mm, the cameras 0.6-0.8 m from the origin: a rotation and
+a translation error, where the cameras' correction from the views fits rotations about the
+centres alone), occluded (an arm band with its ignore mask), distorted (lens
 distortion), part (the tape stands on a box that hides what goes behind it), garbage
 (white, inverted, random and one-pixel masks). ``--sim N`` adds N plate-chain captures of
 the MuJoCo cell per camera count, ``--shell N`` N captures of the MuJoCo shell tape (not our
