@@ -365,15 +365,17 @@ def _base(capture: Capture, evaluator: CostEvaluator, models: list | None, quads
                         evaluator.model_masks(quads, occluded=False), [(t.x0, t.y0) for t in targets])
 
 
+def _alternative(capture: Capture, cost: float, angles: np.ndarray) -> Alternative:
+    """The plate chain ``angles`` (eq.-11 ``cost``) as an :class:`Alternative`, its tip frame
+    the chain's end."""
+    shape = forward_kinematics(capture.tape, angles)
+    return Alternative(cost, shape.nodes[-1].copy(), shape.frames[-1].copy(), angles)
+
+
 def _hypotheses(capture: Capture, found: list, best_cost: float) -> list[Alternative]:
     """The hypotheses ``found`` [(eq.-11 cost, angles)] within the ambiguity margin of
     ``best_cost``, as :class:`Alternative` (their tip frames the plate chains' ends)."""
-    near = []
-    for cost, a in found:
-        if is_close_alternative(cost, best_cost):
-            shape = forward_kinematics(capture.tape, a)
-            near.append(Alternative(cost, shape.nodes[-1].copy(), shape.frames[-1].copy(), a))
-    return near
+    return [_alternative(capture, cost, a) for cost, a in found if is_close_alternative(cost, best_cost)]
 
 
 def _second_look(first: Estimate, second: Estimate, folded: bool) -> Estimate:
@@ -730,10 +732,10 @@ def _probed(capture: Capture, est: Estimate, first: FirstStage, config: FitConfi
     for cost, angles in sorted(_depth_probes(capture, first, est, config), key=lambda x: x[0]):
         if cost >= own:
             break
-        shape = forward_kinematics(capture.tape, angles)
-        if all(np.linalg.norm(shape.nodes[-1] - t) > DISTINCT_TIP_M for t in tips):
-            rivals.append(Alternative(cost, shape.nodes[-1].copy(), shape.frames[-1].copy(), angles))
-            tips.append(shape.nodes[-1])
+        rival = _alternative(capture, cost, angles)
+        if all(np.linalg.norm(rival.tip_position - t) > DISTINCT_TIP_M for t in tips):
+            rivals.append(rival)
+            tips.append(rival.tip_position)
     spent = time.perf_counter() - start
     if not rivals:
         return dataclasses.replace(est, time_s=est.time_s + spent)

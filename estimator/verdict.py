@@ -195,10 +195,10 @@ tape 1043025's right end ends at the part's outline in one view, 24 outline pixe
 its tip edge: none left."""
 
 
-def _box_edges(view: View, boxes: Sequence[Box]) -> list[tuple[np.ndarray, np.ndarray]]:
+def _box_edges(view: View, boxes: Sequence[Box]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Per scene box seen whole in front of ``view``'s camera, its projected outline (the
-    convex hull of :func:`views.box_outline_px`) as (a point of each edge (k, 2), the edge's
-    unit normal pointing in (k, 2)) [px]."""
+    convex hull of :func:`views.box_outline_px`) as (each edge's start (k, 2), the edge
+    (k, 2), its unit normal pointing in (k, 2)) [px]."""
     out = []
     for hull in box_hulls(view.camera, boxes):
         poly = hull[:, 0].astype(float)
@@ -209,56 +209,58 @@ def _box_edges(view: View, boxes: Sequence[Box]) -> list[tuple[np.ndarray, np.nd
         edge = np.roll(poly, -1, axis=0) - poly
         inward = turn * np.column_stack([-edge[:, 1], edge[:, 0]]) / np.maximum(
             np.linalg.norm(edge, axis=1), 1e-12)[:, None]
-        out.append((poly, inward))
+        out.append((poly, edge, inward))
     return out
 
 
-def _box_depth_px(edges: list[tuple[np.ndarray, np.ndarray]], points: np.ndarray) -> np.ndarray:
+def _to_segments(points: np.ndarray, a: np.ndarray, edge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distance (N, k), place along (N, k)) [px] from each image point (N, 2) to the
+    segments starting at ``a`` (k, 2) along ``edge`` (k, 2): to the nearest point of each,
+    and that point's distance from the segment's start."""
+    rel = points[:, None, :] - a[None]
+    squared = np.maximum((edge * edge).sum(axis=1), 1e-12)
+    t = np.clip(np.einsum("nkj,kj->nk", rel, edge) / squared, 0.0, 1.0)
+    return np.linalg.norm(rel - t[..., None] * edge[None], axis=2), t * np.sqrt(squared)
+
+
+def _box_depth_px(edges: list, points: np.ndarray) -> np.ndarray:
     """(N,) how far [px] each image point (N, 2) lies inside the boxes' projected outlines
     (:func:`_box_edges`): for a box, the least of its distances to its edges' lines inside,
     minus the distance to the outline outside; the greatest over the boxes, -inf without
     any. Exact geometry at the points, whatever crop they were taken from."""
     out = np.full(len(points), -np.inf)
-    for a, inward in edges:
-        rel = points[:, None, :] - a[None]                                   # (N, k, 2)
-        depth = np.min(np.einsum("nkj,kj->nk", rel, inward), axis=1)
+    for a, edge, inward in edges:
+        depth = np.min(np.einsum("nkj,kj->nk", points[:, None, :] - a[None], inward), axis=1)
         outside = depth < 0
         if outside.any():
             # Outside, the Euclidean distance to the outline's nearest edge segment (the
             # lines' distance would reach farther round a corner).
-            edge = np.roll(a, -1, axis=0) - a
-            r = rel[outside]
-            t = np.clip(np.einsum("nkj,kj->nk", r, edge) / np.maximum((edge * edge).sum(axis=1), 1e-12), 0.0, 1.0)
-            depth[outside] = -np.min(np.linalg.norm(r - t[..., None] * edge[None], axis=2), axis=1)
+            depth[outside] = -np.min(_to_segments(points[outside], a, edge)[0], axis=1)
         out = np.maximum(out, depth)
     return out
 
 
-def _along_edges(edges: list[tuple[np.ndarray, np.ndarray]], points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _along_edges(edges: list, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For each image point (N, 2): which box outline edge is nearest it (an index over
     every box's edges, (N,)) and where along that edge its nearest point lies [px from the
     edge's start] (N,)."""
     best = np.full(len(points), np.inf)
     which = np.zeros(len(points), int)
     along = np.zeros(len(points))
-    base = 0
-    for a, _ in edges:
-        edge = np.roll(a, -1, axis=0) - a
-        length = np.sqrt(np.maximum((edge * edge).sum(axis=1), 1e-12))
-        rel = points[:, None, :] - a[None]
-        t = np.clip(np.einsum("nkj,kj->nk", rel, edge) / length ** 2, 0.0, 1.0)
-        d = np.linalg.norm(rel - t[..., None] * edge[None], axis=2)
+    rows, base = np.arange(len(points)), 0
+    for a, edge, _ in edges:
+        d, place = _to_segments(points, a, edge)
         k = np.argmin(d, axis=1)
-        closer = d[np.arange(len(points)), k] < best
-        best[closer] = d[np.arange(len(points)), k][closer]
+        closer = d[rows, k] < best
+        best[closer] = d[rows, k][closer]
         which[closer] = base + k[closer]
-        along[closer] = (t * length[None])[np.arange(len(points)), k][closer]
+        along[closer] = place[rows, k][closer]
         base += len(a)
     return which, along
 
 
 def box_cuts(view: View, boxes: Sequence[Box], observed: np.ndarray, origin: tuple[int, int],
-             at_least: int = 0) -> np.ndarray:
+             at_least: int = 0, edges: list | None = None) -> np.ndarray:
     """(N, 2) image pixels (x, y) of the observed outline where the tape goes behind a scene
     box (BOX_CUT_RING_PX): outline pixels of ``observed`` (the view's silhouette crop whose
     top-left pixel is ``origin``; nothing outside it is tape) within BOX_CUT_RING_PX outside
@@ -269,8 +271,8 @@ def box_cuts(view: View, boxes: Sequence[Box], observed: np.ndarray, origin: tup
     none within BOX_CUT_RING_PX + 2 of ignored pixels (what is under them is unknown). Pixel
     centres are measured against the exact projected outlines, so the answer does not depend
     on the crop. Fewer than ``at_least`` outline pixels near a box: those, untested (as many
-    as the cuts at most)."""
-    edges = _box_edges(view, boxes)
+    as the cuts at most). ``edges``: the boxes' :func:`_box_edges` in this view, when made."""
+    edges = _box_edges(view, boxes) if edges is None else edges
     if not edges:
         return np.zeros((0, 2), int)
     obs = np.pad(observed.astype(np.uint8), 1)     # nothing outside the crop is tape
@@ -300,25 +302,20 @@ def box_cuts(view: View, boxes: Sequence[Box], observed: np.ndarray, origin: tup
     return pixels[keep]
 
 
-def _segment_px(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(N,) distance [px] from each image point (N, 2) to the segment a-b."""
-    ab = b - a
-    t = np.clip((points - a) @ ab / max(float(ab @ ab), 1e-12), 0.0, 1.0)
-    return np.linalg.norm(points - (a + t[:, None] * ab), axis=1)
-
-
 def unexplained_cut_px(view: View, boxes: Sequence[Box], observed: np.ndarray, origin: tuple[int, int],
                        base_edge: np.ndarray, tip_edge: np.ndarray,
                        body_hidden: Callable[[], np.ndarray]) -> float:
     """How far [px] ``view``'s observed outline goes behind a scene box (:func:`box_cuts`)
     away from the model (BOX_CUT_EXPLAINED_PX), along one edge of a box's projected outline
     (the longest unbroken stretch, BOX_CUT_GAP_PX: a tape's side passing a box's corner
-    makes a few pixels along each of two edges): away from the model's base edge and its tip edge (each (2, 3), corner
-    to corner; an edge behind the camera explains nothing) and from ``body_hidden()``, a
-    uint8 0/1 crop like ``observed`` of the pixels where a box hides the model's chain
-    before its last plate (drawn only when asked). Below BOX_CUT_PX, a count of outline
-    pixels near a box, untested (:func:`box_cuts`' ``at_least``: at least as long)."""
-    cuts = box_cuts(view, boxes, observed, origin, at_least=BOX_CUT_PX)
+    makes a few pixels along each of two edges): away from the model's base edge and its
+    tip edge (each (2, 3), corner to corner; an edge behind the camera explains nothing)
+    and from ``body_hidden()``, a uint8 0/1 crop like ``observed`` of the pixels where a box
+    hides the model's chain before its last plate (drawn only when asked). Below
+    BOX_CUT_PX, a count of outline pixels near a box, untested (:func:`box_cuts`'
+    ``at_least``: at least as long)."""
+    edges = _box_edges(view, boxes)
+    cuts = box_cuts(view, boxes, observed, origin, at_least=BOX_CUT_PX, edges=edges)
     if len(cuts) < BOX_CUT_PX:
         return float(len(cuts))
     r = BOX_CUT_EXPLAINED_PX
@@ -329,7 +326,7 @@ def unexplained_cut_px(view: View, boxes: Sequence[Box], observed: np.ndarray, o
         edge = np.asarray(edge, float)
         uv = cam.project(edge)
         if np.all(cam.to_camera(edge)[:, 2] > 0) and np.all(np.isfinite(uv)):
-            explained |= _segment_px(points, uv[0], uv[1]) <= r
+            explained |= _to_segments(points, uv[:1], uv[1:] - uv[:1])[0][:, 0] <= r
     hidden_px = body_hidden()
     if hidden_px.any():
         near = cv2.dilate(hidden_px, _disc(r).astype(np.uint8))
@@ -339,7 +336,7 @@ def unexplained_cut_px(view: View, boxes: Sequence[Box], observed: np.ndarray, o
         explained[inside] |= near[cy[inside], cx[inside]] > 0
     if explained.all():
         return 0.0
-    which, along = _along_edges(_box_edges(view, boxes), points[~explained])
+    which, along = _along_edges(edges, points[~explained])
     longest = 0.0
     for k in np.unique(which):
         # The longest unbroken stretch along that edge (pixels a few apart at most): a side
