@@ -555,6 +555,8 @@ def warm() -> float:
     origin.setflags(write=False)     # a camera's centre is read-only (Camera.center): typed apart
     segments_hit_boxes(origin, np.ones((1, 3)), *box_arrays([_WARM_BOX]))
     box_penetration(np.ones((1, 3)), *box_arrays([_WARM_BOX]))
+    from ._kernels_lm import warm as warm_lm
+    warm_lm(cam, field, box_arrays([_WARM_BOX]), pair, pair_w, segments)
     lab = np.zeros((2, 2), np.int32)
     map_labels(lab, np.zeros(label_areas(lab, 1).size, np.uint8), np.zeros((2, 2), np.uint8))
     _warm = True

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _kernels_lm
 from .chain import Chain
 from .config import DEFAULT, FitConfig
 from .residuals import residuals
@@ -25,6 +26,11 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
     parameters (k, P)) -> (residuals (k, e), Jacobian (k, e, P)), rows appended to the
     views' (their half squared sum added to the cost, the returned cost and state included;
     a ``state`` passed in must hold them too)."""
+    if cfg.compiled and extra is None and fields:
+        params, cost, r, J, entries = _kernels_lm.run(chain, fields, params, iterations, state, cfg)
+        if log is not None:
+            log += entries
+        return params, cost, (r, J, cost)
     params = np.array(params, float)
     B, N = params.shape
     na = 3 * chain.n

@@ -15,7 +15,7 @@ from tapecell.estimator.tape import joint_rotations
 from tapecell.estimator.views import clean_mask, fill_pinholes, prepare
 
 NUMPY = dataclasses.replace(DEFAULT, compiled=False)
-from tapecell.estimator.synthetic import SyntheticOptions, make_capture
+from tapecell.estimator.synthetic import SyntheticOptions, make_capture, make_capture_with_angles
 
 
 @pytest.fixture(scope="module", params=[(21, False), (22, True)], ids=["plain", "occluded-distorted"])
@@ -186,15 +186,48 @@ def test_mask_cleaning_matches_reference():
     assert 0 < int(got.sum()) < m.size and not np.array_equal(ref, m)
 
 
+@pytest.mark.parametrize("part", [False, True], ids=["plain", "scene-boxes"])
+def test_compiled_levenberg_marquardt_matches_the_python_loop(part):
+    """solver.levenberg_marquardt compiled whole (_kernels_lm) takes the Python loop's steps:
+    the same parameters, costs, residuals, Jacobian and log (each iteration's candidates and
+    their parameters) to float rounding, from a fresh start and from a given state, with and
+    without scene boxes (their penetration rows and hidden points) and view weights."""
+    from tapecell.estimator.solver import levenberg_marquardt
+
+    c, truth = make_capture_with_angles(7, SyntheticOptions(kind="chain", cameras=3, part=part, noise=True))
+    fields = [prepare(v, c.scene) for v in c.views]
+    fields[1] = dataclasses.replace(fields[1], weight=0.6)
+    assert bool(fields[0].boxes) == part
+    chain = Chain(c.tape)
+    rng = np.random.default_rng(3)
+    params = (truth[None] + rng.normal(scale=0.08, size=(5, chain.n, 3))).reshape(5, -1)
+
+    def nothing(which, p):     # an ``extra`` of no rows: the Python loop
+        return np.zeros((len(which), 0)), np.zeros((len(which), 0, p.shape[1]))
+
+    state = residuals(chain, fields, params, True)
+    for given in (None, state):
+        logs = [], []
+        ours = levenberg_marquardt(chain, fields, params, 6, logs[0], given)
+        python = levenberg_marquardt(chain, fields, params, 6, logs[1], given, extra=nothing)
+        assert _relative(ours[0], python[0]) < 1e-9 and np.allclose(ours[1], python[1], rtol=1e-9, atol=0)
+        assert _relative(ours[2][0], python[2][0]) < 1e-9 and _relative(ours[2][1], python[2][1]) < 1e-9
+        assert len(logs[0]) == len(logs[1]) >= 2
+        for (a, pa), (b, pb) in zip(*logs):
+            assert np.array_equal(a, b) and _relative(pa, pb) < 1e-9
+        assert np.all(ours[1] < state[2])      # every candidate improved
+    assert np.array_equal(state[0], residuals(chain, fields, params, True)[0])   # the given state not written
+
+
 def test_warm_compiles_every_kernel_a_fit_calls():
     """After ``warm()`` a fit compiles nothing (its clock must not pay for it): a capture with
     scene boxes (the part, the table) and a camera whose read-only centre numba types apart
     adds no signature to any compiled kernel."""
-    from tapecell.estimator import _kernels, _kernels_beam, _kernels_boxes, estimate
+    from tapecell.estimator import _kernels, _kernels_beam, _kernels_boxes, _kernels_lm, estimate
     from tapecell.estimator.synthetic import SyntheticOptions, make_capture
 
     def signatures():
-        return {(m.__name__, name): len(f.signatures) for m in (_kernels, _kernels_beam, _kernels_boxes)
+        return {(m.__name__, name): len(f.signatures) for m in (_kernels, _kernels_beam, _kernels_boxes, _kernels_lm)
                 for name, f in vars(m).items() if hasattr(f, "signatures") and hasattr(f, "py_func")}
 
     _kernels.warm()

@@ -1,0 +1,220 @@
+"""The batched Levenberg-Marquardt of :func:`estimator.solver.levenberg_marquardt` compiled
+whole (numba): the residuals of :func:`estimator.residuals.residuals` (every view's terms, the
+angle prior, the scene boxes' penetration), the damped normal equations and the loop in one
+call, the same steps in the same order. A fit runs a few dozen of its iterations on batches
+of 2-8 candidates; in Python each iteration was ~20 small array calls and a call per view,
+whose overhead matched the arithmetic."""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from ._kernels import _chain_arrays, camera_params, chain_points, view_residuals
+from ._kernels_boxes import box_penetration, segments_hit_boxes
+
+
+@njit(cache=True, fastmath=False)
+def _evaluate(params, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
+              cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
+              prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra):
+    """residuals.residuals(..., jacobian=True) of (k, 3n) params: (r (k, R), J (k, R, 3n), cost (k,))."""
+    k, N = params.shape
+    angles = np.ascontiguousarray(params).reshape(k, n, 3)
+    pts, Jp = chain_points(angles, pos, rot, lengths, width, pair, pair_w, True)
+    V = cams.shape[0]
+    R = extra
+    for v in range(V):
+        R += ooff[v + 1] - ooff[v] + ns
+    res = np.empty((k, R))
+    jac = np.empty((k, R, N))
+    cost = np.zeros(k)
+    row = 0
+    samples = np.ascontiguousarray(pts[:, :ns]).reshape(k * ns, 3)
+    for v in range(V):
+        h, w, c = fshape[v, 0], fshape[v, 1], fshape[v, 2]
+        field = fbuf[foff[v]:foff[v] + h * w * c].reshape((h, w, c))
+        outline = outl[ooff[v]:ooff[v + 1]]
+        if has_boxes:
+            hidden = segments_hit_boxes(centers[v], samples, bcent, brot, bhalf).reshape(k, ns)
+        else:
+            hidden = np.zeros((k, ns), np.bool_)
+        cv = view_residuals(pts, Jp, True, cams[v], field, x0s[v], y0s[v], has_ign[v], outline, ns, edge, weight,
+                            segments, fold_of, delta_out, delta_in, hidden, res, jac, row)
+        stop = row + outline.shape[0] + ns
+        if vweight[v] != 1.0:
+            sw = np.sqrt(vweight[v])
+            res[:, row:stop] *= sw
+            jac[:, row:stop] *= sw
+        for b in range(k):
+            cost[b] += vweight[v] * cv[b]
+        row = stop
+    # The angle prior's rows, then the corners' penetration of the boxes.
+    for b in range(k):
+        s = 0.0
+        for i in range(N):
+            pr = params[b, i] * prior_px
+            res[b, row + i] = pr
+            s += pr * pr
+        cost[b] += 0.5 * s
+        for i in range(N):
+            for j in range(N):
+                jac[b, row + i, j] = prior_px if i == j else 0.0
+    if has_boxes:
+        nc = pts.shape[1] - ns
+        corners = np.ascontiguousarray(pts[:, ns:]).reshape(k * nc, 3)
+        depth, grad = box_penetration(corners, bcent, brot, bhalf)
+        at = row + N
+        for b in range(k):
+            s = 0.0
+            for q in range(nc):
+                pen = pen_px * depth[b * nc + q]
+                res[b, at + q] = pen
+                s += pen * pen
+                for j in range(N):
+                    g = 0.0
+                    for a in range(3):
+                        g += pen_px * grad[b * nc + q, a] * Jp[b, ns + q, a, j]
+                    jac[b, at + q, j] = g
+            cost[b] += 0.5 * s
+    return res, jac, cost
+
+
+@njit(cache=True, fastmath=False)
+def levenberg_marquardt(params, iterations, rtol, r, J, cost, n, ns, pos, rot, lengths, width, pair, pair_w, edge,
+                        weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff,
+                        vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra):
+    """solver.levenberg_marquardt's loop on (B, P) ``params`` from their (r, J, cost). Returns
+    (params, cost, r, J, iterations taken, active (iterations, B) bool, their params
+    (iterations, B, P)) -- the last two the solver's log."""
+    B, N = params.shape
+    na = 3 * n
+    mu = np.full(B, 1e-3)
+    active = np.arange(B)
+    log_active = np.zeros((iterations, B), np.bool_)
+    log_params = np.zeros((iterations, B, N))
+    taken = 0
+    for it in range(iterations):
+        m = active.size
+        trial = np.empty((m, N))
+        steps = np.empty((m, N))
+        for i in range(m):
+            b = active[i]
+            Jb = J[b]
+            A = Jb.T @ Jb
+            g = Jb.T @ r[b]
+            for d in range(N):
+                A[d, d] += mu[b] * (A[d, d] + 1e-6)
+            step = np.linalg.solve(A, -g)
+            for d in range(N):
+                steps[i, d] = step[d]
+                trial[i, d] = params[b, d] + step[d]
+        r2, J2, c2 = _evaluate(trial, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments,
+                               fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
+                               prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
+        done = np.zeros(m, np.bool_)
+        for i in range(m):
+            b = active[i]
+            ok = c2[i] < cost[b]
+            flat = ok and (cost[b] - c2[i] < rtol * cost[b])
+            if ok:
+                params[b] = trial[i]
+                cost[b] = c2[i]
+                r[b] = r2[i]
+                J[b] = J2[i]
+                mu[b] = max(mu[b] * 0.3, 1e-7)
+            else:
+                mu[b] *= 10.0
+            log_active[it, b] = True
+            log_params[it, b] = params[b]
+            small = True
+            for d in range(na):
+                if abs(steps[i, d]) >= 1e-4:
+                    small = False
+                    break
+            done[i] = (ok and small) or flat or mu[b] > 1e4
+        taken = it + 1
+        active = active[~done]
+        if active.size == 0:
+            break
+    return params, cost, r, J, taken, log_active, log_params
+
+
+class Packed:
+    """A list of :class:`views.Field` in the compiled solver's form (built once per list)."""
+
+    def __init__(self, fields):
+        V = len(fields)
+        self.cams = np.array([camera_params(f.camera) for f in fields], float).reshape(V, -1)
+        self.centers = np.array([f.camera.center for f in fields], float).reshape(V, 3)
+        arrays = [np.ascontiguousarray(f.field, np.float32) for f in fields]
+        self.fshape = np.array([a.shape for a in arrays], np.int64).reshape(V, 3)
+        self.foff = np.concatenate([[0], np.cumsum([a.size for a in arrays])]).astype(np.int64)
+        self.fbuf = np.concatenate([a.ravel() for a in arrays]) if arrays else np.zeros(0, np.float32)
+        self.x0s = np.array([f.x0 for f in fields], np.int64)
+        self.y0s = np.array([f.y0 for f in fields], np.int64)
+        self.has_ign = np.array([f.has_ignore for f in fields], np.bool_)
+        self.outl = np.ascontiguousarray(np.concatenate([f.outline for f in fields]) if fields
+                                         else np.zeros((0, 2)), float).reshape(-1, 2)
+        self.ooff = np.concatenate([[0], np.cumsum([len(f.outline) for f in fields])]).astype(np.int64)
+        self.vweight = np.array([f.weight for f in fields], float)
+        boxes = fields[0].boxes if fields else ()
+        self.has_boxes = bool(boxes)
+        self.boxes = tuple(np.ascontiguousarray(a, float) for a in fields[0].box_arrays) if boxes else (
+            np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
+
+
+_packed: dict = {}
+
+
+def packed(fields) -> Packed:
+    """:class:`Packed` of ``fields``, cached by the identity of every field's parts (the
+    entry holds them, so no identity is reused while it lives; a few entries kept)."""
+    key = tuple((id(f), id(f.camera), id(f.field), id(f.outline)) for f in fields)
+    hit = _packed.get(key)
+    if hit is None:
+        if len(_packed) > 8:
+            _packed.clear()
+        hit = _packed[key] = (Packed(fields), list(fields))
+    return hit[0]
+
+
+def run(chain, fields, params: np.ndarray, iterations: int, state, cfg):
+    """The compiled loop on ``params`` (B, P) from ``state`` (r, J, cost; copied) or None:
+    (params, cost, r, J, log entries [(active (k,), params (k, P)), ...])."""
+    pair, pair_w, edge, weight, segments, fold_of, pos, rot, lengths, width = _chain_arrays(chain)
+    p = packed(fields)
+    boxes = p.boxes
+    N = params.shape[1]
+    extra = N + (3 * (chain.n + 1) if p.has_boxes else 0)
+    args = (chain.n, chain.samples, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
+            p.cams, p.centers, p.fbuf, p.foff, p.fshape, p.x0s, p.y0s, p.has_ign, p.outl, p.ooff, p.vweight,
+            float(cfg.angle_prior_px), float(cfg.penetration_px_per_m), boxes[0], boxes[1], boxes[2], p.has_boxes,
+            float(cfg.delta_out_px), float(cfg.delta_in_px), extra)
+    params = np.array(params, float)
+    if state is None:
+        r, J, cost = _evaluate(params, *args)
+    else:
+        r, J, cost = (np.array(s, float) for s in state)
+    params, cost, r, J, taken, log_active, log_params = levenberg_marquardt(params, iterations, float(cfg.lm_rtol),
+                                                                            r, J, cost, *args)
+    log = []
+    for it in range(taken):
+        act = np.flatnonzero(log_active[it])
+        log.append((act, log_params[it, act]))
+    return params, cost, r, J, log
+
+
+def warm(cam: np.ndarray, field: np.ndarray, box_arrays: tuple, pair: np.ndarray, pair_w: np.ndarray,
+         segments: np.ndarray) -> None:
+    """Compile or load both kernels on tiny inputs of the fit's argument types (a 2-plate
+    chain of one sample point, one view of ``field``): :func:`_kernels.warm` calls it."""
+    n = 2
+    fbuf = np.ascontiguousarray(field, np.float32).ravel()
+    args = (n, 1, np.zeros(3), np.eye(3), np.full(n, 0.01), 0.01, pair, pair_w, np.ones(1, np.bool_), np.ones(1),
+            segments, np.full(1, -1, np.int64), cam[None].copy(), np.zeros((1, 3)), fbuf, np.array([0, fbuf.size]),
+            np.array([field.shape], np.int64), np.zeros(1, np.int64), np.zeros(1, np.int64), np.ones(1, np.bool_),
+            np.zeros((2, 2)), np.array([0, 2]), np.ones(1), 1.0, 1.0, *box_arrays, True, 3.0, 1.5,
+            3 * n + 3 * (n + 1))
+    params = np.zeros((1, 3 * n))
+    r, J, cost = _evaluate(params, *args)
+    levenberg_marquardt(params, 1, 1e-3, r, J, cost, *args)
