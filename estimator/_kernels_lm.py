@@ -139,6 +139,122 @@ def levenberg_marquardt(params, iterations, rtol, r, J, cost, n, ns, pos, rot, l
     return params, cost, r, J, taken, log_active, log_params
 
 
+@njit(cache=True, fastmath=False)
+def _strip_evaluate(x, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
+                    cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight, prior_px, pen_px,
+                    bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra):
+    """strip.Strip.residuals: the fine chain's residuals at angles T x, by x, and the strip's
+    prior rows: (r (R + P,), J (R + P, P), cost)."""
+    fine = np.ascontiguousarray(T @ x).reshape(1, T.shape[0])
+    r, J, cost = _evaluate(fine, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
+                           cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight, prior_px, pen_px,
+                           bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
+    p = prior @ x
+    R, P = r.shape[1], x.size
+    rr = np.empty(R + P)
+    rr[:R] = r[0]
+    rr[R:] = p
+    JJ = np.empty((R + P, P))
+    JJ[:R] = np.ascontiguousarray(J[0]) @ T
+    JJ[R:] = prior
+    return rr, JJ, cost[0] + (0.5 * p) @ p
+
+
+@njit(cache=True, fastmath=False)
+def strip_levenberg_marquardt(x, iterations, rtol, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, edge,
+                              weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl,
+                              ooff, vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in,
+                              extra):
+    """solver.levenberg_marquardt_one on the strip's fit to the views (strip.Strip.residuals)."""
+    r, J, cost = _strip_evaluate(x, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments,
+                                 fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
+                                 prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
+    mu = 1e-3
+    P = x.size
+    for _ in range(iterations):
+        A = J.T @ J
+        for d in range(P):
+            A[d, d] += mu * A[d, d] + 1e-9
+        step = np.linalg.solve(A, -(J.T @ r))
+        trial = x + step
+        r2, J2, c2 = _strip_evaluate(trial, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight,
+                                     segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl,
+                                     ooff, vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out,
+                                     delta_in, extra)
+        if c2 < cost:
+            flat = cost - c2 < rtol * cost
+            x, r, J, cost, mu = trial, r2, J2, c2, max(mu * 0.3, 1e-7)
+            if flat:
+                break
+        else:
+            mu *= 10.0
+            if mu > 1e4:
+                break
+    return x
+
+
+@njit(cache=True, fastmath=False)
+def _corner_rows(x, T, goal, w, frame, frame_s, length, width, pos, rot, lengths, chain_width, pair, pair_w):
+    """solver.corner_fit's function at ``x`` on the chain of angles T x: its corners onto
+    ``goal`` (k, 3) weighted by ``w`` (k,) and, with ``frame_s`` > 0, strip._tip_frame_rows
+    (the last plate's direction and width axis onto ``frame`` (3, 3), ``frame_s`` times the
+    last plate's ``length``): (r, J, cost)."""
+    n = lengths.size
+    m = n + 1
+    s = pair.shape[0]
+    angles = np.ascontiguousarray(T @ x).reshape(1, n, 3)
+    pts, Jp = chain_points(angles, pos, rot, lengths, chain_width, pair, pair_w, True)
+    k = goal.shape[0]
+    P = x.size
+    rows = 3 * k + (6 if frame_s > 0 else 0)
+    r = np.empty(rows)
+    J = np.empty((rows, P))
+    Jc = np.ascontiguousarray(Jp[0, s:]).reshape(3 * k, 3 * n) @ T      # (3k, P): corner coordinates by x
+    for q in range(k):
+        for a in range(3):
+            r[3 * q + a] = w[q] * (pts[0, s + q, a] - goal[q, a])
+            for j in range(P):
+                J[3 * q + a, j] = w[q] * Jc[3 * q + a, j]
+    if frame_s > 0:
+        for a in range(3):
+            ex = (pts[0, s + n, a] - pts[0, s + n - 1, a]) / length
+            ey = (pts[0, s + m + n, a] - pts[0, s + 2 * m + n, a]) / width
+            r[3 * k + a] = frame_s * (ex - frame[a, 0])
+            r[3 * k + 3 + a] = frame_s * (ey - frame[a, 1])
+            for j in range(P):
+                J[3 * k + a, j] = frame_s * ((Jc[3 * n + a, j] - Jc[3 * (n - 1) + a, j]) / length)
+                J[3 * k + 3 + a, j] = frame_s * ((Jc[3 * (m + n) + a, j] - Jc[3 * (2 * m + n) + a, j]) / width)
+    return r, J, (0.5 * r) @ r
+
+
+@njit(cache=True, fastmath=False)
+def corner_levenberg_marquardt(x, iterations, rtol, T, goal, w, frame, frame_s, length, width, pos, rot, lengths,
+                               chain_width, pair, pair_w):
+    """solver.levenberg_marquardt_one on :func:`_corner_rows`."""
+    r, J, cost = _corner_rows(x, T, goal, w, frame, frame_s, length, width, pos, rot, lengths, chain_width, pair,
+                              pair_w)
+    mu = 1e-3
+    P = x.size
+    for _ in range(iterations):
+        A = J.T @ J
+        for d in range(P):
+            A[d, d] += mu * A[d, d] + 1e-9
+        step = np.linalg.solve(A, -(J.T @ r))
+        trial = x + step
+        r2, J2, c2 = _corner_rows(trial, T, goal, w, frame, frame_s, length, width, pos, rot, lengths, chain_width,
+                                  pair, pair_w)
+        if c2 < cost:
+            flat = cost - c2 < rtol * cost
+            x, r, J, cost, mu = trial, r2, J2, c2, max(mu * 0.3, 1e-7)
+            if flat:
+                break
+        else:
+            mu *= 10.0
+            if mu > 1e4:
+                break
+    return x
+
+
 class Packed:
     """A list of :class:`views.Field` in the compiled solver's form (built once per list)."""
 
@@ -178,18 +294,21 @@ def packed(fields) -> Packed:
     return hit[0]
 
 
+def _args(chain, fields, cfg) -> tuple:
+    """The kernels' arguments after the parameters: ``chain``'s arrays, the packed views, the settings."""
+    pair, pair_w, edge, weight, segments, fold_of, pos, rot, lengths, width = _chain_arrays(chain)
+    p = packed(fields)
+    extra = 3 * chain.n + (3 * (chain.n + 1) if p.has_boxes else 0)
+    return (chain.n, chain.samples, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
+            p.cams, p.centers, p.fbuf, p.foff, p.fshape, p.x0s, p.y0s, p.has_ign, p.outl, p.ooff, p.vweight,
+            float(cfg.angle_prior_px), float(cfg.penetration_px_per_m), *p.boxes, p.has_boxes,
+            float(cfg.delta_out_px), float(cfg.delta_in_px), extra)
+
+
 def run(chain, fields, params: np.ndarray, iterations: int, state, cfg):
     """The compiled loop on ``params`` (B, P) from ``state`` (r, J, cost; copied) or None:
     (params, cost, r, J, log entries [(active (k,), params (k, P)), ...])."""
-    pair, pair_w, edge, weight, segments, fold_of, pos, rot, lengths, width = _chain_arrays(chain)
-    p = packed(fields)
-    boxes = p.boxes
-    N = params.shape[1]
-    extra = N + (3 * (chain.n + 1) if p.has_boxes else 0)
-    args = (chain.n, chain.samples, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
-            p.cams, p.centers, p.fbuf, p.foff, p.fshape, p.x0s, p.y0s, p.has_ign, p.outl, p.ooff, p.vweight,
-            float(cfg.angle_prior_px), float(cfg.penetration_px_per_m), boxes[0], boxes[1], boxes[2], p.has_boxes,
-            float(cfg.delta_out_px), float(cfg.delta_in_px), extra)
+    args = _args(chain, fields, cfg)
     params = np.array(params, float)
     if state is None:
         r, J, cost = _evaluate(params, *args)
@@ -202,6 +321,29 @@ def run(chain, fields, params: np.ndarray, iterations: int, state, cfg):
         act = np.flatnonzero(log_active[it])
         log.append((act, log_params[it, act]))
     return params, cost, r, J, log
+
+
+def strip_fit(strip, fields, x: np.ndarray, iterations: int, rtol: float, cfg) -> np.ndarray:
+    """The compiled :func:`solver.levenberg_marquardt_one` on ``strip``'s fit to ``fields``
+    from its parameters ``x``."""
+    return strip_levenberg_marquardt(np.array(x, float), iterations, float(rtol), strip.T, strip.prior,
+                                     *_args(strip.chain, fields, cfg))
+
+
+def corner_fit(chain, T: np.ndarray, goal: np.ndarray, weight, x: np.ndarray, iterations: int, rtol: float,
+               frame: np.ndarray | None = None, frame_weight: float = 0.0) -> np.ndarray:
+    """The compiled :func:`solver.levenberg_marquardt_one` on :func:`solver.corner_fit`: the
+    corners of ``chain`` at angles ``T`` x (T (3n, P)) onto ``goal`` (3m, 3) weighted by
+    ``weight`` (3m,) or a scalar and, with ``frame_weight`` > 0, its tip frame onto ``frame``
+    (strip._tip_frame_rows), from ``x``."""
+    pair, pair_w, _, _, _, _, pos, rot, lengths, width = _chain_arrays(chain)
+    goal = np.ascontiguousarray(goal, float)
+    w = np.array(np.broadcast_to(np.asarray(weight, float), (len(goal),)))
+    length = float(chain.spec.segment_lengths[-1])
+    frame = np.eye(3) if frame is None else np.ascontiguousarray(frame, float)
+    return corner_levenberg_marquardt(np.array(x, float), iterations, float(rtol), np.ascontiguousarray(T, float),
+                                      goal, w, frame, float(frame_weight) * length, length, float(width), pos, rot,
+                                      lengths, float(width), pair, pair_w)
 
 
 def warm(cam: np.ndarray, field: np.ndarray, box_arrays: tuple, pair: np.ndarray, pair_w: np.ndarray,
@@ -218,3 +360,7 @@ def warm(cam: np.ndarray, field: np.ndarray, box_arrays: tuple, pair: np.ndarray
     params = np.zeros((1, 3 * n))
     r, J, cost = _evaluate(params, *args)
     levenberg_marquardt(params, 1, 1e-3, r, J, cost, *args)
+    T = np.eye(3 * n)
+    strip_levenberg_marquardt(np.zeros(3 * n), 1, 1e-3, T, np.eye(3 * n), *args)
+    corner_levenberg_marquardt(np.zeros(3 * n), 1, 1e-3, T, np.zeros((3 * (n + 1), 3)), np.ones(3 * (n + 1)),
+                               np.eye(3), 1.0, 0.01, 0.01, *args[2:8])

@@ -11,6 +11,7 @@ import functools
 
 import numpy as np
 
+from . import _kernels_lm
 from .chain import Chain
 from .config import DEFAULT, FitConfig
 from .residuals import residuals
@@ -102,11 +103,18 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
     target = np.concatenate([a[i] * (1 - f) + a[i + 1] * f for a in (shape.nodes, shape.left, shape.right)])
     x0 = np.zeros(strip.T.shape[1])
     x0[:3] = angles[0]
-    x = levenberg_marquardt_one(corner_fit(strip.corners, target), x0, 20, 1e-4)
-    fit = functools.partial(strip.residuals, fields)
-    if extra is not None:
-        fit = with_rows(fit, strip.corners, extra)
-    x = levenberg_marquardt_one(fit, x, cfg.strip_iterations, cfg.strip_rtol)
+    compiled = cfg.compiled and bool(fields)
+    if compiled:
+        x = _kernels_lm.corner_fit(strip.chain, strip.T, target, 1.0, x0, 20, 1e-4)
+    else:
+        x = levenberg_marquardt_one(corner_fit(strip.corners, target), x0, 20, 1e-4)
+    if extra is None and compiled:
+        x = _kernels_lm.strip_fit(strip, fields, x, cfg.strip_iterations, cfg.strip_rtol, cfg)
+    else:
+        fit = functools.partial(strip.residuals, fields)
+        if extra is not None:
+            fit = with_rows(fit, strip.corners, extra)
+        x = levenberg_marquardt_one(fit, x, cfg.strip_iterations, cfg.strip_rtol)
     fine = forward_kinematics(strip.fine, strip.angles(x))
     # The output chain: the plate chain closest to the strip at the model's nodes.
     goal = np.concatenate([fine.nodes[::k], fine.left[::k], fine.right[::k]])
@@ -114,6 +122,9 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
     w[[n, 2 * n + 1, 3 * n + 2]] = cfg.strip_tip_weight
 
     def output(frame_weight: float) -> np.ndarray:
+        if compiled:
+            return _kernels_lm.corner_fit(chain, _identity(3 * n), goal, w, angles.ravel(), 10, 1e-4, fine.frames[-1],
+                                          frame_weight).reshape(n, 3)
         frame_rows = _tip_frame_rows(chain, fine.frames[-1], frame_weight) if frame_weight > 0 else None
         fun = corner_fit(chain.corners, goal, w, frame_rows)
         return levenberg_marquardt_one(fun, angles.ravel().copy(), 10, 1e-4).reshape(n, 3)
@@ -121,6 +132,12 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
     output.tip = (fine.nodes[-1].copy(), fine.frames[-1].copy())   # the strip's end frame
     output.fine = fine   # the strip itself (the fine chain's shape)
     return output
+
+
+@functools.lru_cache(maxsize=8)
+def _identity(size: int) -> np.ndarray:
+    """The (size, size) identity, shared: not to be written."""
+    return np.eye(size)
 
 
 def _tip_frame_rows(chain: Chain, tip_frame: np.ndarray, weight: float):
