@@ -219,6 +219,40 @@ def test_compiled_levenberg_marquardt_matches_the_python_loop(part):
     assert np.array_equal(state[0], residuals(chain, fields, params, True)[0])   # the given state not written
 
 
+def test_compiled_strip_fits_match_the_python_loops():
+    """The strip stage's compiled fits (_kernels_lm) take solver.levenberg_marquardt_one's
+    steps: its fit to the views (against the Python loop, forced by touched-point rows of
+    none) and the corner fits of the strip's start and of the output plate chain with its
+    tip-frame rows, to float rounding."""
+    from tapecell.estimator import _kernels_lm
+    from tapecell.estimator.solver import corner_fit, levenberg_marquardt_one
+    from tapecell.estimator.strip import _strip_for, _tip_frame_rows, strip_stage
+
+    c, truth = make_capture_with_angles(8, SyntheticOptions(kind="chain", cameras=2, part=True))
+    fields = [prepare(v, c.scene) for v in c.views]
+    chain = Chain(c.tape)
+    angles = truth + np.random.default_rng(4).normal(scale=0.05, size=truth.shape)
+
+    def no_rows(corners, J):
+        return np.zeros(0), np.zeros((0, J.shape[-1]))
+
+    ours, python = strip_stage(chain, fields, angles), strip_stage(chain, fields, angles, extra=no_rows)
+    assert _relative(ours.fine.nodes, python.fine.nodes) < 1e-9
+    assert _relative(ours.tip[1], python.tip[1]) < 1e-9
+    strip = _strip_for(chain.spec, DEFAULT)
+    x0 = np.random.default_rng(5).normal(scale=0.1, size=strip.T.shape[1])
+    goal = strip.corners(x0)[0] + 0.001
+    want = levenberg_marquardt_one(corner_fit(strip.corners, goal), x0 * 0.5, 20, 1e-4)
+    assert _relative(_kernels_lm.corner_fit(strip.chain, strip.T, goal, 1.0, x0 * 0.5, 20, 1e-4), want) < 1e-9
+    goal = chain.corners(angles)[0] + 0.002
+    w = np.linspace(1.0, 10.0, len(goal))
+    frame = ours.tip[1]
+    want = levenberg_marquardt_one(corner_fit(chain.corners, goal, w, _tip_frame_rows(chain, frame, 1.0)),
+                                   truth.ravel().copy(), 10, 1e-4)
+    got = _kernels_lm.corner_fit(chain, np.eye(3 * chain.n), goal, w, truth.ravel(), 10, 1e-4, frame, 1.0)
+    assert _relative(got, want) < 1e-9 and _relative(got, truth.ravel()) > 1e-3
+
+
 def test_warm_compiles_every_kernel_a_fit_calls():
     """After ``warm()`` a fit compiles nothing (its clock must not pay for it): a capture with
     scene boxes (the part, the table) and a camera whose read-only centre numba types apart
