@@ -477,9 +477,10 @@ def estimate(capture: Capture, method: str = "default", callback: Callback | Non
         raise EstimateError(f"{capture.name}: no camera views to fit")
     if method == "default":
         warm()  # once per process: compiling/loading the kernels is not fitting
-    est = _look(capture, method, callback, thorough, config, second_look)
+    made: list = []
+    est = _look(capture, method, callback, thorough, config, second_look, made=made)
     if method == "default" and second_look and not thorough and _calibration_suspect(capture, est):
-        est = _recalibrated(capture, est, config)
+        est = _recalibrated(capture, est, config, made[0].fields if made else None)
     return est
 
 
@@ -527,7 +528,7 @@ def _calibration_suspect(capture: Capture, est: Estimate) -> bool:
     return bool(np.max(_base(capture, _evaluator(capture, quads), None, quads)) > BASE_OFFSET_PX)
 
 
-def _recalibrated(capture: Capture, est: Estimate, config: FitConfig) -> Estimate:
+def _recalibrated(capture: Capture, est: Estimate, config: FitConfig, fields: list | None = None) -> Estimate:
     """The answer with every camera's rotation corrected from the views
     (:func:`recalibrate.camera_corrections`, from ``est``'s chain) where it is "ok" and
     explains the views clearly better (its cost at most ``recalibrate.MIN_GAIN`` of
@@ -537,9 +538,9 @@ def _recalibrated(capture: Capture, est: Estimate, config: FitConfig) -> Estimat
     "ambiguous" with the corrected shape as an alternative); else ``est``. A correction beyond
     ``recalibrate.MAX_DEG`` for any camera is not taken. The time of both counts. The answer's nodes and tip are in
     the world frame, which the tape's base anchors; its views' costs and offsets are on the
-    corrected cameras."""
+    corrected cameras. ``fields``: the capture's views as the first look prepared them."""
     start = time.perf_counter()
-    rotations = recalibrate.camera_corrections(capture, est.angles, config)
+    rotations = recalibrate.camera_corrections(capture, est.angles, config, fields)
     degrees = np.degrees(np.linalg.norm(rotations, axis=1))
     spent = time.perf_counter() - start
     if np.any(degrees > recalibrate.MAX_DEG):
@@ -576,11 +577,13 @@ def _recalibrated(capture: Capture, est: Estimate, config: FitConfig) -> Estimat
 
 
 def _look(capture: Capture, method: str, callback: Callback | None, thorough: bool, config: FitConfig,
-          second_look: bool, first: FirstStage | None = None, final: bool = True) -> Estimate:
+          second_look: bool, first: FirstStage | None = None, final: bool = True, made: list | None = None) -> Estimate:
     """:func:`estimate` once its arguments are checked; ``first``: the capture's
     :class:`FirstStage` when the first look made it (its masks were judged sound then);
     ``final``: the answer (not the second look inside it), whose alternatives may not
-    explain the views better than it does (:func:`_cheapest_first`)."""
+    explain the views better than it does (:func:`_cheapest_first`); ``made``: a list this
+    look's :class:`FirstStage` is appended to (for the cameras' correction, which reads its
+    prepared views)."""
     from .paper import fit_paper
 
     start = time.perf_counter()
@@ -592,6 +595,8 @@ def _look(capture: Capture, method: str, callback: Callback | None, thorough: bo
     fallback, found, strip = None, [], None
     if method == "default":
         first = FirstStage(capture, Chain(capture.tape, cfg=config), config) if first is None else first
+        if made is not None:
+            made.append(first)
         angles, trace, evaluations, fallback, found, strip = fit_default(capture, thorough=thorough, cfg=config,
                                                                          first=first)
     else:

@@ -82,11 +82,14 @@ def turned(camera: Camera, rotation: np.ndarray) -> Camera:
     return camera.with_pose(dR @ camera.R, dR @ camera.t)
 
 
-def camera_corrections(capture: Capture, angles: np.ndarray, cfg: FitConfig = DEFAULT) -> np.ndarray:
+def camera_corrections(capture: Capture, angles: np.ndarray, cfg: FitConfig = DEFAULT,
+                       fields: list | None = None) -> np.ndarray:
     """(K, 3) rotation vectors [rad], one per camera, that with joint angles fitted from
-    ``angles`` (n, 3) explain the views best, each held near zero by the prior."""
+    ``angles`` (n, 3) explain the views best, each held near zero by the prior. ``fields``:
+    the views as :func:`views.prepare` made them for this capture and ``cfg``, when made."""
     chain = Chain(capture.tape, cfg=cfg)
-    fields = [prepare(v, capture.scene, cfg) for v in capture.views]
+    if fields is None:
+        fields = [prepare(v, capture.scene, cfg) for v in capture.views]
     K, na = len(fields), angles.size
     prior = PRIOR_PX / np.radians(SIGMA_DEG)
 
