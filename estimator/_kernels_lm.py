@@ -14,15 +14,17 @@ from ._kernels_boxes import box_penetration, segments_hit_boxes
 
 
 @njit(cache=True, fastmath=False)
-def _evaluate(params, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
+def _evaluate(params, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
               cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
               prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra):
-    """residuals.residuals(..., jacobian=True) of (k, 3n) params: (r (k, R), J (k, R, 3n), cost (k,))."""
+    """residuals.residuals(..., jacobian=True) of (k, 3n) params: (r (k, R), J (k, R, 3n), cost (k,));
+    with ``pull_at`` >= 0, three rows more, last: chain point ``pull_at`` pulled to ``targets``
+    (k, 3) by ``pull_w`` [px/m] (solver.levenberg_marquardt's ``pull``)."""
     k, N = params.shape
     angles = np.ascontiguousarray(params).reshape(k, n, 3)
     pts, Jp = chain_points(angles, pos, rot, lengths, width, pair, pair_w, True)
     V = cams.shape[0]
-    R = extra
+    R = extra + (3 if pull_at >= 0 else 0)
     for v in range(V):
         R += ooff[v + 1] - ooff[v] + ns
     res = np.empty((k, R))
@@ -76,16 +78,28 @@ def _evaluate(params, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weigh
                         g += pen_px * grad[b * nc + q, a] * Jp[b, ns + q, a, j]
                     jac[b, at + q, j] = g
             cost[b] += 0.5 * s
+    if pull_at >= 0:
+        at = R - 3
+        for b in range(k):
+            s = 0.0
+            for a in range(3):
+                d = pull_w * (pts[b, pull_at, a] - targets[b, a])
+                res[b, at + a] = d
+                s += d * d
+                for j in range(N):
+                    jac[b, at + a, j] = pull_w * Jp[b, pull_at, a, j]
+            cost[b] += 0.5 * s
     return res, jac, cost
 
 
 @njit(cache=True, fastmath=False)
-def levenberg_marquardt(params, iterations, rtol, r, J, cost, n, ns, pos, rot, lengths, width, pair, pair_w, edge,
+def levenberg_marquardt(params, iterations, rtol, r, J, cost, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width, pair, pair_w, edge,
                         weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff,
                         vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra):
     """solver.levenberg_marquardt's loop on (B, P) ``params`` from their (r, J, cost). Returns
     (params, cost, r, J, iterations taken, active (iterations, B) bool, their params
-    (iterations, B, P)) -- the last two the solver's log."""
+    (iterations, B, P)) -- the last two the solver's log. ``pull_at``, ``pull_w``, ``targets``
+    (B, 3): :func:`_evaluate`'s pull (``pull_at`` -1: none)."""
     B, N = params.shape
     na = 3 * n
     mu = np.full(B, 1e-3)
@@ -108,7 +122,11 @@ def levenberg_marquardt(params, iterations, rtol, r, J, cost, n, ns, pos, rot, l
             for d in range(N):
                 steps[i, d] = step[d]
                 trial[i, d] = params[b, d] + step[d]
-        r2, J2, c2 = _evaluate(trial, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments,
+        pulled = np.empty((m, 3))
+        if pull_at >= 0:
+            for i in range(m):
+                pulled[i] = targets[active[i]]
+        r2, J2, c2 = _evaluate(trial, pull_at, pull_w, pulled, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments,
                                fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
                                prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
         done = np.zeros(m, np.bool_)
@@ -146,7 +164,7 @@ def _strip_evaluate(x, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, 
     """strip.Strip.residuals: the fine chain's residuals at angles T x, by x, and the strip's
     prior rows: (r (R + P,), J (R + P, P), cost)."""
     fine = np.ascontiguousarray(T @ x).reshape(1, T.shape[0])
-    r, J, cost = _evaluate(fine, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
+    r, J, cost = _evaluate(fine, -1, 0.0, np.zeros((1, 3)), n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
                            cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight, prior_px, pen_px,
                            bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
     p = prior @ x
@@ -305,17 +323,20 @@ def _args(chain, fields, cfg) -> tuple:
             float(cfg.delta_out_px), float(cfg.delta_in_px), extra)
 
 
-def run(chain, fields, params: np.ndarray, iterations: int, state, cfg):
+def run(chain, fields, params: np.ndarray, iterations: int, state, cfg, pull=None):
     """The compiled loop on ``params`` (B, P) from ``state`` (r, J, cost; copied) or None:
-    (params, cost, r, J, log entries [(active (k,), params (k, P)), ...])."""
+    (params, cost, r, J, log entries [(active (k,), params (k, P)), ...]). ``pull``: (chain
+    point index, weight [px/m], targets (B, 3)) or None (solver.levenberg_marquardt)."""
     args = _args(chain, fields, cfg)
     params = np.array(params, float)
+    at, weight, targets = (-1, 0.0, np.zeros((len(params), 3))) if pull is None else pull
+    pulled = (int(at), float(weight), np.array(targets, float).reshape(len(params), 3))
     if state is None:
-        r, J, cost = _evaluate(params, *args)
+        r, J, cost = _evaluate(params, *pulled, *args)
     else:
         r, J, cost = (np.array(s, float) for s in state)
     params, cost, r, J, taken, log_active, log_params = levenberg_marquardt(params, iterations, float(cfg.lm_rtol),
-                                                                            r, J, cost, *args)
+                                                                            r, J, cost, *pulled, *args)
     log = []
     for it in range(taken):
         act = np.flatnonzero(log_active[it])
@@ -358,8 +379,8 @@ def warm(cam: np.ndarray, field: np.ndarray, box_arrays: tuple, pair: np.ndarray
             np.zeros((2, 2)), np.array([0, 2]), np.ones(1), 1.0, 1.0, *box_arrays, True, 3.0, 1.5,
             3 * n + 3 * (n + 1))
     params = np.zeros((1, 3 * n))
-    r, J, cost = _evaluate(params, *args)
-    levenberg_marquardt(params, 1, 1e-3, r, J, cost, *args)
+    r, J, cost = _evaluate(params, 0, 1.0, np.zeros((1, 3)), *args)
+    levenberg_marquardt(params, 1, 1e-3, r, J, cost, 0, 1.0, np.zeros((1, 3)), *args)
     T = np.eye(3 * n)
     strip_levenberg_marquardt(np.zeros(3 * n), 1, 1e-3, T, np.eye(3 * n), *args)
     corner_levenberg_marquardt(np.zeros(3 * n), 1, 1e-3, T, np.zeros((3 * (n + 1), 3)), np.ones(3 * (n + 1)),

@@ -711,14 +711,9 @@ def _depth_probes(capture: Capture, first: FirstStage, est: Estimate, config: Fi
         points += [est.tip_position - DEPTH_PROBE_M * ray, est.tip_position + DEPTH_PROBE_M * ray]
     points = np.array(points)
     end = chain.samples + chain.n                  # P_C[n] among the chain's points
-
-    def pulled(which: np.ndarray, params: np.ndarray):
-        pts, J = chain.points(params.reshape(len(params), chain.n, 3), True)
-        return (DEPTH_PROBE_PX_PER_M * (pts[:, end] - points[which]),
-                DEPTH_PROBE_PX_PER_M * J[:, end])
-
     start = np.repeat(np.asarray(est.angles, float).reshape(1, -1), len(points), axis=0)
-    params, _, _ = levenberg_marquardt(chain, first.fields, start, DEPTH_PROBE_ITERATIONS, cfg=config, extra=pulled)
+    params, _, _ = levenberg_marquardt(chain, first.fields, start, DEPTH_PROBE_ITERATIONS, cfg=config,
+                                       pull=(end, DEPTH_PROBE_PX_PER_M, points))
     params, _, _ = levenberg_marquardt(chain, first.fields, params, DEPTH_PROBE_ITERATIONS, cfg=config)
     angles = params.reshape(len(points), chain.n, 3)
     return list(zip(first.silhouette_costs(angles).tolist(), angles))

@@ -17,7 +17,7 @@ from .views import Field
 
 
 def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, iterations: int,
-                        log: list | None = None, state=None, cfg: FitConfig = DEFAULT, extra=None):
+                        log: list | None = None, state=None, cfg: FitConfig = DEFAULT, extra=None, pull=None):
     """Robust (IRLS) Levenberg-Marquardt on a batch of (B, P) parameter vectors (see
     :func:`estimator.residuals.residuals`) at once. ``state``: (residuals, Jacobian, cost) at ``params`` when
     already known. Returns (params (B, P), robust cost (B,), final state); appends to ``log``
@@ -25,9 +25,16 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
     :func:`trace` reads one candidate's iterates. ``extra``: (candidates (k,), their
     parameters (k, P)) -> (residuals (k, e), Jacobian (k, e, P)), rows appended to the
     views' (their half squared sum added to the cost, the returned cost and state included;
-    a ``state`` passed in must hold them too)."""
+    a ``state`` passed in must hold them too). ``pull``: (index of one of the chain's points
+    (``Chain.points``), weight [px/m], targets (B, 3) [m]): three such rows, that point of each
+    candidate pulled to its target (not with ``extra``)."""
+    if pull is not None:
+        if extra is not None:
+            raise ValueError("levenberg_marquardt: pull and extra rows together")
+        if not (cfg.compiled and fields):
+            extra = _pull_rows(chain, *pull)
     if cfg.compiled and extra is None and fields:
-        params, cost, r, J, entries = _kernels_lm.run(chain, fields, params, iterations, state, cfg)
+        params, cost, r, J, entries = _kernels_lm.run(chain, fields, params, iterations, state, cfg, pull)
         if log is not None:
             log += entries
         return params, cost, (r, J, cost)
@@ -77,6 +84,18 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
         if active.size == 0:
             break
     return params, cost, (r, J, cost)
+
+
+def _pull_rows(chain: Chain, at: int, weight: float, targets: np.ndarray):
+    """``pull`` as ``extra`` rows: (candidates (k,), their parameters (k, P)) -> (residuals
+    (k, 3), Jacobian (k, 3, P))."""
+    targets = np.asarray(targets, float)
+
+    def rows(which: np.ndarray, params: np.ndarray):
+        pts, J = chain.points(params.reshape(len(params), chain.n, 3), True)
+        return weight * (pts[:, at] - targets[which]), weight * J[:, at]
+
+    return rows
 
 
 def trace(log: list, b: int, n: int) -> list[np.ndarray]:

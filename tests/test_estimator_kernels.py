@@ -192,7 +192,7 @@ def test_compiled_levenberg_marquardt_matches_the_python_loop(part):
     the same parameters, costs, residuals, Jacobian and log (each iteration's candidates and
     their parameters) to float rounding, from a fresh start and from a given state, with and
     without scene boxes (their penetration rows and hidden points) and view weights."""
-    from tapecell.estimator.solver import levenberg_marquardt
+    from tapecell.estimator.solver import _pull_rows, levenberg_marquardt
 
     c, truth = make_capture_with_angles(7, SyntheticOptions(kind="chain", cameras=3, part=part, noise=True))
     fields = [prepare(v, c.scene) for v in c.views]
@@ -217,6 +217,17 @@ def test_compiled_levenberg_marquardt_matches_the_python_loop(part):
             assert np.array_equal(a, b) and _relative(pa, pb) < 1e-9
         assert np.all(ours[1] < state[2])      # every candidate improved
     assert np.array_equal(state[0], residuals(chain, fields, params, True)[0])   # the given state not written
+    # The tip pulled to targets (the depth probes' rows): compiled, and as Python ``extra`` rows.
+    end = chain.samples + chain.n
+    targets = chain.tips(params.reshape(5, chain.n, 3)) + rng.normal(scale=0.01, size=(5, 3))
+    logs = [], []
+    ours = levenberg_marquardt(chain, fields, params, 6, logs[0], pull=(end, 20000.0, targets))
+    python = levenberg_marquardt(chain, fields, params, 6, logs[1], extra=_pull_rows(chain, end, 20000.0, targets))
+    assert _relative(ours[0], python[0]) < 1e-9 and np.allclose(ours[1], python[1], rtol=1e-9, atol=0)
+    assert _relative(ours[2][1], python[2][1]) < 1e-9 and len(logs[0]) == len(logs[1])
+    assert ours[2][0].shape[1] == state[0].shape[1] + 3
+    moved = np.linalg.norm(chain.tips(ours[0].reshape(5, chain.n, 3)) - targets, axis=1)
+    assert np.all(moved < np.linalg.norm(chain.tips(params.reshape(5, chain.n, 3)) - targets, axis=1))
 
 
 def test_compiled_strip_fits_match_the_python_loops():
