@@ -71,6 +71,27 @@ def test_calibrated_cameras_get_almost_no_correction():
     assert np.degrees(np.linalg.norm(rotations, axis=1)).max() < 0.1   # a fifth of the 0.5 deg corrected above
 
 
+def test_the_correction_reads_the_views_the_first_look_prepared(monkeypatch):
+    """fit._recalibrated hands the first look's prepared views to camera_corrections, which
+    then prepares none itself; given or made afresh, the corrections are the same."""
+    capture, _ = _turned_capture(SEED, 3, 0.5)
+    seen = []
+    corrections = recalibrate.camera_corrections
+
+    def spy(c, angles, cfg=fit.DEFAULT, fields=None):
+        seen.append(fields)
+        return corrections(c, angles, cfg, fields)
+
+    monkeypatch.setattr(recalibrate, "camera_corrections", spy)
+    est = estimate(capture)
+    assert "turned from their calibration" in est.verdict_reason
+    assert len(seen) == 1 and seen[0] is not None and len(seen[0]) == len(capture.views)
+    monkeypatch.setattr(recalibrate, "prepare", lambda *a: pytest.fail("views prepared again"))
+    given = corrections(capture, est.angles, fit.DEFAULT, seen[0])
+    monkeypatch.undo()
+    assert np.array_equal(given, corrections(capture, est.angles))
+
+
 @pytest.mark.parametrize("seed, before", [(100, Verdict.POOR_FIT), (101, Verdict.HIDDEN)])
 def test_two_cameras_are_corrected_where_the_model_misses_the_base(monkeypatch, seed, before):
     """Two views alone are explained by a shifted shape, but not at the base, which cannot
