@@ -14,6 +14,15 @@ from ._kernels_boxes import box_penetration, segments_hit_boxes
 
 
 @njit(cache=True, fastmath=False)
+def _solve(A, b):
+    """np.linalg.solve(A, b), or NaNs where A or b holds a NaN or an infinity (NumPy's
+    solve returns NaNs there, numba's raises: a step of NaNs is rejected as NumPy's was)."""
+    if not (np.all(np.isfinite(A)) and np.all(np.isfinite(b))):
+        return np.full(b.shape[0], np.nan)
+    return np.linalg.solve(A, b)
+
+
+@njit(cache=True, fastmath=False)
 def _evaluate(params, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
               cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
               prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra):
@@ -118,7 +127,7 @@ def levenberg_marquardt(params, iterations, rtol, r, J, cost, pull_at, pull_w, t
             g = Jb.T @ r[b]
             for d in range(N):
                 A[d, d] += mu[b] * (A[d, d] + 1e-6)
-            step = np.linalg.solve(A, -g)
+            step = _solve(A, -g)
             for d in range(N):
                 steps[i, d] = step[d]
                 trial[i, d] = params[b, d] + step[d]
@@ -193,7 +202,7 @@ def strip_levenberg_marquardt(x, iterations, rtol, T, prior, n, ns, pos, rot, le
         A = J.T @ J
         for d in range(P):
             A[d, d] += mu * A[d, d] + 1e-9
-        step = np.linalg.solve(A, -(J.T @ r))
+        step = _solve(A, -(J.T @ r))
         trial = x + step
         r2, J2, c2 = _strip_evaluate(trial, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight,
                                      segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl,
@@ -257,7 +266,7 @@ def corner_levenberg_marquardt(x, iterations, rtol, T, goal, w, frame, frame_s, 
         A = J.T @ J
         for d in range(P):
             A[d, d] += mu * A[d, d] + 1e-9
-        step = np.linalg.solve(A, -(J.T @ r))
+        step = _solve(A, -(J.T @ r))
         trial = x + step
         r2, J2, c2 = _corner_rows(trial, T, goal, w, frame, frame_s, length, width, pos, rot, lengths, chain_width,
                                   pair, pair_w)
