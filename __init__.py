@@ -19,8 +19,22 @@ def cache_dir() -> _Path:
     return _Path(base) / "tapecell"
 
 
+def kernel_sources_digest(folder: _Path | None = None) -> str:
+    """12 hex digits naming the estimator's compiled kernels' sources (every ``_kernels*.py``
+    in ``folder``, the estimator's by default): numba's cache is kept per digest, because a
+    kernel compiled into another file's (estimator/_kernels_lm.py holds copies of the
+    residual kernels) is not recompiled when only the file it comes from changes."""
+    import hashlib
+
+    folder = _Path(__file__).resolve().parent / "estimator" if folder is None else _Path(folder)
+    digest = hashlib.sha256()
+    for path in sorted(folder.glob("_kernels*.py")):
+        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()[:12]
+
+
 # numba reads NUMBA_CACHE_DIR when it is first imported (by tapecell.estimator._kernels).
-_os.environ.setdefault("NUMBA_CACHE_DIR", str(cache_dir() / "numba"))
+_os.environ.setdefault("NUMBA_CACHE_DIR", str(cache_dir() / "numba" / kernel_sources_digest()))
 
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 

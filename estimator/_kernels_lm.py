@@ -1,10 +1,25 @@
-"""The batched Levenberg-Marquardt of :func:`estimator.solver.levenberg_marquardt` compiled
-whole (numba): the residuals of :func:`estimator.residuals.residuals` (every view's terms, the
-angle prior, the scene boxes' penetration), the damped normal equations and the loop in one
-call, the same steps in the same order. A fit runs a few dozen of its iterations on batches
-of 2-8 candidates; in Python each iteration was ~20 small array calls and a call per view,
-whose overhead matched the arithmetic."""
+"""The least-squares fits of the default estimator compiled whole (numba), each the same
+steps in the same order as the Python loop it stands for (``tests/test_estimator_kernels.py``
+checks them against each other to float rounding):
+
+- :func:`levenberg_marquardt`: :func:`estimator.solver.levenberg_marquardt`'s batched loop,
+  with the residuals of :func:`estimator.residuals.residuals` (every view's terms, the angle
+  prior, the scene boxes' penetration) and optionally a chain point pulled to a target (the
+  depth probes), the damped normal equations and the loop in one call;
+- :func:`strip_levenberg_marquardt`: :func:`estimator.solver.levenberg_marquardt_one` on the
+  strip's fit to the views (:meth:`estimator.strip.Strip.residuals`);
+- :func:`corner_levenberg_marquardt`: the same on :func:`estimator.solver.corner_fit`'s
+  corners (and :func:`estimator.strip._tip_frame_rows`), the strip stage's 3-D fits.
+
+A fit runs a few dozen iterations on batches of 1-8 candidates; in Python each iteration was
+~20 small array calls and a call per view, whose overhead matched the arithmetic. A change to
+a solver's steps (its damping, its tests) is made in both places. The compiled code holds
+copies of the kernels it calls from ``_kernels.py`` and ``_kernels_boxes.py``: numba's cache
+sees only this file change, so the cache's folder is named by a digest of every
+``_kernels*.py`` (:func:`tapecell.kernel_sources_digest`)."""
 from __future__ import annotations
+
+import weakref
 
 import numpy as np
 from numba import njit
@@ -283,7 +298,8 @@ def corner_levenberg_marquardt(x, iterations, rtol, T, goal, w, frame, frame_s, 
 
 
 class Packed:
-    """A list of :class:`views.Field` in the compiled solver's form (built once per list)."""
+    """A list of :class:`views.Field` in the compiled solver's form: their arrays copied into
+    flat ones (a field's arrays are not to be written once made)."""
 
     def __init__(self, fields):
         V = len(fields)
@@ -302,23 +318,31 @@ class Packed:
         self.vweight = np.array([f.weight for f in fields], float)
         boxes = fields[0].boxes if fields else ()
         self.has_boxes = bool(boxes)
+        # One set of boxes for every view (the kernels hide points and charge penetration by
+        # the first view's, as residuals() charges penetration): views that differ go the
+        # Python way (:func:`usable`).
+        ids = [id(b) for b in boxes]
+        self.same_boxes = all([id(b) for b in f.boxes] == ids for f in fields)
         self.boxes = tuple(np.ascontiguousarray(a, float) for a in fields[0].box_arrays) if boxes else (
             np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
 
 
-_packed: dict = {}
+_packed: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
 def packed(fields) -> Packed:
-    """:class:`Packed` of ``fields``, cached by the identity of every field's parts (the
-    entry holds them, so no identity is reused while it lives; a few entries kept)."""
-    key = tuple((id(f), id(f.camera), id(f.field), id(f.outline)) for f in fields)
-    hit = _packed.get(key)
-    if hit is None:
-        if len(_packed) > 8:
-            _packed.clear()
-        hit = _packed[key] = (Packed(fields), list(fields))
-    return hit[0]
+    """:class:`Packed` of ``fields`` (at least one), kept while its first field lives (for
+    the same list of fields, by identity: the entry refers to them weakly)."""
+    hit = _packed.get(fields[0])
+    if hit is None or len(hit[0]) != len(fields) or any(r() is not f for r, f in zip(hit[0], fields)):
+        hit = ([weakref.ref(f) for f in fields], Packed(fields))
+        _packed[fields[0]] = hit
+    return hit[1]
+
+
+def usable(fields) -> bool:
+    """Can the compiled fits take these views (some, all with the same scene boxes)?"""
+    return bool(fields) and packed(fields).same_boxes
 
 
 def _args(chain, fields, cfg) -> tuple:
@@ -332,31 +356,38 @@ def _args(chain, fields, cfg) -> tuple:
             float(cfg.delta_out_px), float(cfg.delta_in_px), extra)
 
 
-def run(chain, fields, params: np.ndarray, iterations: int, state, cfg, pull=None):
+def run(chain, fields, params: np.ndarray, iterations: int, state, cfg, pull=None, log: list | None = None):
     """The compiled loop on ``params`` (B, P) from ``state`` (r, J, cost; copied) or None:
-    (params, cost, r, J, log entries [(active (k,), params (k, P)), ...]). ``pull``: (chain
-    point index, weight [px/m], targets (B, 3)) or None (solver.levenberg_marquardt)."""
+    (params, cost, r, J); each iteration's (active (k,), params (k, P)) appended to ``log``.
+    ``pull``: (chain point index, weight [px/m], targets (B, 3)) or None
+    (solver.levenberg_marquardt)."""
     args = _args(chain, fields, cfg)
-    params = np.array(params, float)
-    at, weight, targets = (-1, 0.0, np.zeros((len(params), 3))) if pull is None else pull
-    pulled = (int(at), float(weight), np.array(targets, float).reshape(len(params), 3))
+    params = np.array(params, float, order="C")
+    if pull is None:
+        pulled = (-1, 0.0, np.zeros((len(params), 3)))
+    else:
+        at, weight, targets = pull
+        if not 0 <= int(at) < chain.samples + 3 * (chain.n + 1):
+            raise IndexError(f"pull: the chain has no point {at}")
+        pulled = (int(at), float(weight), np.array(targets, float, order="C").reshape(len(params), 3))
     if state is None:
         r, J, cost = _evaluate(params, *pulled, *args)
     else:
-        r, J, cost = (np.array(s, float) for s in state)
-    params, cost, r, J, taken, log_active, log_params = levenberg_marquardt(params, iterations, float(cfg.lm_rtol),
-                                                                            r, J, cost, *pulled, *args)
-    log = []
-    for it in range(taken):
-        act = np.flatnonzero(log_active[it])
-        log.append((act, log_params[it, act]))
-    return params, cost, r, J, log
+        r, J, cost = (np.array(s, float, order="C") for s in state)
+    params, cost, r, J, taken, log_active, log_params = levenberg_marquardt(
+        params, max(int(iterations), 0), float(cfg.lm_rtol), r, J, cost, *pulled, *args)
+    if log is not None:
+        for it in range(taken):
+            act = np.flatnonzero(log_active[it])
+            log.append((act, log_params[it, act]))
+    return params, cost, r, J
 
 
 def strip_fit(strip, fields, x: np.ndarray, iterations: int, rtol: float, cfg) -> np.ndarray:
     """The compiled :func:`solver.levenberg_marquardt_one` on ``strip``'s fit to ``fields``
     from its parameters ``x``."""
-    return strip_levenberg_marquardt(np.array(x, float), iterations, float(rtol), strip.T, strip.prior,
+    return strip_levenberg_marquardt(np.array(x, float, order="C"), max(int(iterations), 0), float(rtol),
+                                     np.ascontiguousarray(strip.T, float), np.ascontiguousarray(strip.prior, float),
                                      *_args(strip.chain, fields, cfg))
 
 
@@ -371,15 +402,18 @@ def corner_fit(chain, T: np.ndarray, goal: np.ndarray, weight, x: np.ndarray, it
     w = np.array(np.broadcast_to(np.asarray(weight, float), (len(goal),)))
     length = float(chain.spec.segment_lengths[-1])
     frame = np.eye(3) if frame is None else np.ascontiguousarray(frame, float)
-    return corner_levenberg_marquardt(np.array(x, float), iterations, float(rtol), np.ascontiguousarray(T, float),
+    return corner_levenberg_marquardt(np.array(x, float, order="C"), max(int(iterations), 0), float(rtol),
+                                      np.ascontiguousarray(T, float),
                                       goal, w, frame, float(frame_weight) * length, length, float(width), pos, rot,
                                       lengths, float(width), pair, pair_w)
 
 
 def warm(cam: np.ndarray, field: np.ndarray, box_arrays: tuple, pair: np.ndarray, pair_w: np.ndarray,
          segments: np.ndarray) -> None:
-    """Compile or load both kernels on tiny inputs of the fit's argument types (a 2-plate
-    chain of one sample point, one view of ``field``): :func:`_kernels.warm` calls it."""
+    """Compile or load the three fits (and :func:`_evaluate`) on tiny inputs of the fit's
+    argument types (a 2-plate chain of one sample point, one view of ``field``): any number of
+    views, 3 or 4 channels and the pull on or off are the same types. :func:`_kernels.warm`
+    calls it."""
     n = 2
     fbuf = np.ascontiguousarray(field, np.float32).ravel()
     args = (n, 1, np.zeros(3), np.eye(3), np.full(n, 0.01), 0.01, pair, pair_w, np.ones(1, np.bool_), np.ones(1),

@@ -195,9 +195,10 @@ class FitConfig:
 
     # implementation
     compiled: bool = True
-    """Evaluate the hot loops with the compiled kernels (numba, estimator/_kernels*.py); off:
-    the NumPy reference (estimator/reference.py; same numbers to float rounding, ~10x
-    slower per call)."""
+    """Evaluate the hot loops with the compiled kernels (numba, estimator/_kernels*.py) and
+    run the least-squares fits compiled whole (estimator/_kernels_lm.py); off: the NumPy
+    reference (estimator/reference.py) and the solvers' Python loops (estimator/solver.py;
+    same numbers to float rounding, ~10x slower per call)."""
 
     def grid_angles(self, wide: bool = False) -> np.ndarray:
         """(g, 3) the global stage's (or the wide search's) candidate joint angles [rad]."""

@@ -4,7 +4,10 @@ weights of :mod:`estimator.residuals`), and on one parameter vector for the stri
 3-D fits (:func:`levenberg_marquardt_one`, with :func:`corner_fit`'s residuals). The two
 share the method but not the damping: the batched one damps each candidate by its own
 diagonal (plus 1e-6) and drops converged candidates from the batch; the single one adds
-1e-9. Joining them would change every estimate's numbers (pinned by the golden test)."""
+1e-9. Joining them would change every estimate's numbers (pinned by the golden test).
+With ``FitConfig.compiled`` both run compiled whole (:mod:`estimator._kernels_lm`: the
+batched loop here, the single one for the strip stage's fits), the same steps: a change to
+either loop is made there too."""
 from __future__ import annotations
 
 import numpy as np
@@ -31,12 +34,10 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
     if pull is not None:
         if extra is not None:
             raise ValueError("levenberg_marquardt: pull and extra rows together")
-        if not (cfg.compiled and fields):
+        if not (cfg.compiled and _kernels_lm.usable(fields)):
             extra = _pull_rows(chain, *pull)
-    if cfg.compiled and extra is None and fields:
-        params, cost, r, J, entries = _kernels_lm.run(chain, fields, params, iterations, state, cfg, pull)
-        if log is not None:
-            log += entries
+    if cfg.compiled and extra is None and _kernels_lm.usable(fields):
+        params, cost, r, J = _kernels_lm.run(chain, fields, params, iterations, state, cfg, pull, log)
         return params, cost, (r, J, cost)
     params = np.array(params, float)
     B, N = params.shape

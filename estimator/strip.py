@@ -103,7 +103,7 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
     target = np.concatenate([a[i] * (1 - f) + a[i + 1] * f for a in (shape.nodes, shape.left, shape.right)])
     x0 = np.zeros(strip.T.shape[1])
     x0[:3] = angles[0]
-    compiled = cfg.compiled and bool(fields)
+    compiled = cfg.compiled and _kernels_lm.usable(fields)
     if compiled:
         x = _kernels_lm.corner_fit(strip.chain, strip.T, target, 1.0, x0, 20, 1e-4)
     else:
@@ -136,7 +136,8 @@ def strip_stage(chain: Chain, fields: list[Field], angles: np.ndarray, cfg: FitC
 
 @functools.lru_cache(maxsize=8)
 def _identity(size: int) -> np.ndarray:
-    """The (size, size) identity, shared: not to be written."""
+    """The (size, size) identity, shared (read-only would be another type for numba): not to
+    be written."""
     return np.eye(size)
 
 

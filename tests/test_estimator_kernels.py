@@ -1,5 +1,8 @@
-"""The compiled kernels (estimator/_kernels*.py) against the NumPy reference (estimator/reference.py)."""
+"""The compiled kernels (estimator/_kernels*.py) against the NumPy reference (estimator/reference.py),
+and the fits compiled whole (estimator/_kernels_lm.py) against the solvers' Python loops."""
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -228,6 +231,36 @@ def test_compiled_levenberg_marquardt_matches_the_python_loop(part):
     assert ours[2][0].shape[1] == state[0].shape[1] + 3
     moved = np.linalg.norm(chain.tips(ours[0].reshape(5, chain.n, 3)) - targets, axis=1)
     assert np.all(moved < np.linalg.norm(chain.tips(params.reshape(5, chain.n, 3)) - targets, axis=1))
+
+
+def test_the_compiled_solver_takes_only_what_it_computes_alike(tmp_path):
+    """Views whose scene boxes differ go the Python way (the kernels take the first view's
+    boxes for all); a pull at a point the chain does not have is an error, not a read past
+    its end; the kernels' cache is named by all their sources (a kernel compiled into
+    _kernels_lm.py is not recompiled when only its own file changes)."""
+    import shutil
+
+    import tapecell
+    from tapecell.estimator import _kernels_lm
+    from tapecell.estimator.solver import levenberg_marquardt
+
+    c = make_capture(9, SyntheticOptions(cameras=2, part=True))
+    fields = [prepare(v, c.scene) for v in c.views]
+    assert _kernels_lm.usable(fields) and not _kernels_lm.usable([])
+    mixed = [fields[0], dataclasses.replace(fields[1], boxes=(), box_arrays=())]
+    assert not _kernels_lm.usable(mixed)
+    chain = Chain(c.tape)
+    params = np.zeros((1, 3 * chain.n))
+    with pytest.raises(IndexError):
+        levenberg_marquardt(chain, fields, params, 2, pull=(chain.samples + 3 * (chain.n + 1), 1.0, np.zeros((1, 3))))
+    source = Path(tapecell.__file__).resolve().parent / "estimator"
+    for path in source.glob("_kernels*.py"):
+        shutil.copy(path, tmp_path / path.name)
+    before = tapecell.kernel_sources_digest(tmp_path)
+    assert before == tapecell.kernel_sources_digest(source)
+    with open(tmp_path / "_kernels_boxes.py", "a") as f:
+        f.write("\n# changed\n")
+    assert tapecell.kernel_sources_digest(tmp_path) != before
 
 
 def test_compiled_strip_fits_match_the_python_loops():
