@@ -181,6 +181,27 @@ def levenberg_marquardt(params, iterations, rtol, r, J, cost, pull_at, pull_w, t
     return params, cost, r, J, taken, log_active, log_params
 
 
+@njit(cache=True, fastmath=False, inline="always")
+def _one_step(J, r, mu):
+    """solver.levenberg_marquardt_one's step: the normal equations, each diagonal entry
+    damped by ``mu`` times itself plus 1e-9."""
+    A = J.T @ J
+    for d in range(A.shape[0]):
+        A[d, d] += mu * A[d, d] + 1e-9
+    return _solve(A, -(J.T @ r))
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def _one_outcome(cost, c2, mu, rtol):
+    """solver.levenberg_marquardt_one's judgement of a trial of cost ``c2``: (taken, stop,
+    the next damping): taken where it costs less (and stop where it gained less than
+    ``rtol`` of the cost), else the damping ten times more (stop beyond 1e4)."""
+    if c2 < cost:
+        return True, cost - c2 < rtol * cost, max(mu * 0.3, 1e-7)
+    mu = mu * 10.0
+    return False, mu > 1e4, mu
+
+
 @njit(cache=True, fastmath=False)
 def _strip_evaluate(x, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
                     cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight, prior_px, pen_px,
@@ -212,26 +233,17 @@ def strip_levenberg_marquardt(x, iterations, rtol, T, prior, n, ns, pos, rot, le
                                  fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
                                  prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
     mu = 1e-3
-    P = x.size
     for _ in range(iterations):
-        A = J.T @ J
-        for d in range(P):
-            A[d, d] += mu * A[d, d] + 1e-9
-        step = _solve(A, -(J.T @ r))
-        trial = x + step
+        trial = x + _one_step(J, r, mu)
         r2, J2, c2 = _strip_evaluate(trial, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight,
                                      segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl,
                                      ooff, vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out,
                                      delta_in, extra)
-        if c2 < cost:
-            flat = cost - c2 < rtol * cost
-            x, r, J, cost, mu = trial, r2, J2, c2, max(mu * 0.3, 1e-7)
-            if flat:
-                break
-        else:
-            mu *= 10.0
-            if mu > 1e4:
-                break
+        taken, stop, mu = _one_outcome(cost, c2, mu, rtol)
+        if taken:
+            x, r, J, cost = trial, r2, J2, c2
+        if stop:
+            break
     return x
 
 
@@ -276,24 +288,15 @@ def corner_levenberg_marquardt(x, iterations, rtol, T, goal, w, frame, frame_s, 
     r, J, cost = _corner_rows(x, T, goal, w, frame, frame_s, length, width, pos, rot, lengths, chain_width, pair,
                               pair_w)
     mu = 1e-3
-    P = x.size
     for _ in range(iterations):
-        A = J.T @ J
-        for d in range(P):
-            A[d, d] += mu * A[d, d] + 1e-9
-        step = _solve(A, -(J.T @ r))
-        trial = x + step
+        trial = x + _one_step(J, r, mu)
         r2, J2, c2 = _corner_rows(trial, T, goal, w, frame, frame_s, length, width, pos, rot, lengths, chain_width,
                                   pair, pair_w)
-        if c2 < cost:
-            flat = cost - c2 < rtol * cost
-            x, r, J, cost, mu = trial, r2, J2, c2, max(mu * 0.3, 1e-7)
-            if flat:
-                break
-        else:
-            mu *= 10.0
-            if mu > 1e4:
-                break
+        taken, stop, mu = _one_outcome(cost, c2, mu, rtol)
+        if taken:
+            x, r, J, cost = trial, r2, J2, c2
+        if stop:
+            break
     return x
 
 
