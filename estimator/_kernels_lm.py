@@ -38,8 +38,8 @@ def _solve(A, b):
 
 
 @njit(cache=True, fastmath=False)
-def _evaluate(params, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
-              cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
+def _evaluate(params, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight,
+              segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
               prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra):
     """residuals.residuals(..., jacobian=True) of (k, 3n) params: (r (k, R), J (k, R, 3n), cost (k,));
     with ``pull_at`` >= 0, three rows more, last: chain point ``pull_at`` pulled to ``targets``
@@ -117,9 +117,10 @@ def _evaluate(params, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width,
 
 
 @njit(cache=True, fastmath=False)
-def levenberg_marquardt(params, iterations, rtol, r, J, cost, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width, pair, pair_w, edge,
-                        weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff,
-                        vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra):
+def levenberg_marquardt(params, iterations, rtol, r, J, cost, pull_at, pull_w, targets, n, ns, pos, rot, lengths,
+                        width, pair, pair_w, edge, weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s,
+                        y0s, has_ign, outl, ooff, vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out,
+                        delta_in, extra):
     """solver.levenberg_marquardt's loop on (B, P) ``params`` from their (r, J, cost). Returns
     (params, cost, r, J, iterations taken, active (iterations, B) bool, their params
     (iterations, B, P)) -- the last two the solver's log. ``pull_at``, ``pull_w``, ``targets``
@@ -150,9 +151,10 @@ def levenberg_marquardt(params, iterations, rtol, r, J, cost, pull_at, pull_w, t
         if pull_at >= 0:
             for i in range(m):
                 pulled[i] = targets[active[i]]
-        r2, J2, c2 = _evaluate(trial, pull_at, pull_w, pulled, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments,
-                               fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
-                               prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
+        r2, J2, c2 = _evaluate(trial, pull_at, pull_w, pulled, n, ns, pos, rot, lengths, width, pair, pair_w, edge,
+                               weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl,
+                               ooff, vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in,
+                               extra)
         done = np.zeros(m, np.bool_)
         for i in range(m):
             b = active[i]
@@ -209,9 +211,9 @@ def _strip_evaluate(x, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, 
     """strip.Strip.residuals: the fine chain's residuals at angles T x, by x, and the strip's
     prior rows: (r (R + P,), J (R + P, P), cost)."""
     fine = np.ascontiguousarray(T @ x).reshape(1, T.shape[0])
-    r, J, cost = _evaluate(fine, -1, 0.0, np.zeros((1, 3)), n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight, segments, fold_of,
-                           cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight, prior_px, pen_px,
-                           bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
+    r, J, cost = _evaluate(fine, -1, 0.0, np.zeros((1, 3)), n, ns, pos, rot, lengths, width, pair, pair_w, edge,
+                           weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff,
+                           vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
     p = prior @ x
     R, P = r.shape[1], x.size
     rr = np.empty(R + P)
