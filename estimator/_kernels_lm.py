@@ -56,14 +56,13 @@ def _evaluate(params, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width,
     cost = np.zeros(k)
     row = 0
     samples = np.ascontiguousarray(pts[:, :ns]).reshape(k * ns, 3)
+    hidden = np.zeros((k, ns), np.bool_)         # without boxes nothing is hidden, in any view
     for v in range(V):
         h, w, c = fshape[v, 0], fshape[v, 1], fshape[v, 2]
         field = fbuf[foff[v]:foff[v] + h * w * c].reshape((h, w, c))
         outline = outl[ooff[v]:ooff[v + 1]]
         if has_boxes:
             hidden = segments_hit_boxes(centers[v], samples, bcent, brot, bhalf).reshape(k, ns)
-        else:
-            hidden = np.zeros((k, ns), np.bool_)
         cv = view_residuals(pts, Jp, True, cams[v], field, x0s[v], y0s[v], has_ign[v], outline, ns, edge, weight,
                             segments, fold_of, delta_out, delta_in, hidden, res, jac, row)
         stop = row + outline.shape[0] + ns

@@ -125,8 +125,7 @@ def _fill(img: np.ndarray, fixed: np.ndarray) -> None:
 
 
 def _polygon_area(p: np.ndarray) -> float:
-    x, y = p[:, 0], p[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    return abs(signed_area(p))
 
 
 def outside_area(quads_px: np.ndarray, x0: int, y0: int, w: int, h: int) -> float:
@@ -148,14 +147,16 @@ def outside_area(quads_px: np.ndarray, x0: int, y0: int, w: int, h: int) -> floa
         if not np.all(np.isfinite(q)):
             return float(w * h)  # behind the camera: as bad as filling the whole ROI
         qf = np.ascontiguousarray(q, np.float32)
-        if _signed_area(qf) < 0:
+        if signed_area(qf) < 0:
             qf = qf[::-1].copy()
         inside, _ = cv2.intersectConvexConvex(qf, rect)
         total += max(0.0, _polygon_area(q) - max(0.0, float(inside)))
     return total
 
 
-def _signed_area(p: np.ndarray) -> float:
+def signed_area(p: np.ndarray) -> float:
+    """The area of the polygon ``p`` (k, 2) [px^2] (shoelace), positive where its vertices
+    turn from the x axis towards the y axis."""
     x, y = p[:, 0], p[:, 1]
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 

@@ -31,12 +31,13 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
     a ``state`` passed in must hold them too). ``pull``: (index of one of the chain's points
     (``Chain.points``), weight [px/m], targets (B, 3) [m]): three such rows, that point of each
     candidate pulled to its target (not with ``extra``)."""
+    compiled = cfg.compiled and _kernels_lm.usable(fields)
     if pull is not None:
         if extra is not None:
             raise ValueError("levenberg_marquardt: pull and extra rows together")
-        if not (cfg.compiled and _kernels_lm.usable(fields)):
+        if not compiled:
             extra = _pull_rows(chain, *pull)
-    if cfg.compiled and extra is None and _kernels_lm.usable(fields):
+    if compiled and extra is None:
         params, cost, r, J = _kernels_lm.run(chain, fields, params, iterations, state, cfg, pull, log)
         return params, cost, (r, J, cost)
     params = np.array(params, float)

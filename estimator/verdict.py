@@ -50,6 +50,7 @@ from .capture import View
 from .occlusion import hidden
 from .result import Verdict
 from .scene import Box
+from .silhouette import signed_area
 from .views import box_hulls, box_outline_mask, box_outline_px
 
 POOR_OFFSET_PX = 2.5
@@ -204,8 +205,7 @@ def _box_edges(view: View, boxes: Sequence[Box]) -> list[tuple[np.ndarray, np.nd
         poly = hull[:, 0].astype(float)
         if not np.all(np.isfinite(poly)) or len(poly) < 3:
             continue
-        x, y = poly[:, 0], poly[:, 1]
-        turn = 1.0 if float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y)) > 0 else -1.0
+        turn = 1.0 if signed_area(poly) > 0 else -1.0
         edge = np.roll(poly, -1, axis=0) - poly
         inward = turn * np.column_stack([-edge[:, 1], edge[:, 0]]) / np.maximum(
             np.linalg.norm(edge, axis=1), 1e-12)[:, None]
