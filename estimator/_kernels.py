@@ -541,11 +541,10 @@ def warm() -> float:
                        np.empty((1, 3)),
                        np.empty((1, 3, 3 * n) if jac else (0, 0, 0)), 0)
     outline_cost(pts, segments, cam, np.zeros((2, 2)), 3.0)
-    for hid in (np.zeros((0, 0, 0), np.bool_), np.zeros((1,) + pts.shape[:2], np.bool_)):
-        best_totals(pts, 1, cam[None], field[:, :, 0].ravel(), field[:, :, 3].ravel(), np.zeros((1, 2), np.int64),
-                    np.full((1, 2), 4, np.int64), np.zeros((1, 2), np.int64), np.ones(1, np.bool_), np.ones(1),
-                    hid, 2.0, 3.0, 1.5, np.zeros(1), np.zeros(1), np.zeros(1), 1, np.arange(pts.shape[0]),
-                    np.arange(pts.shape[1]))
+    best_totals(pts, 1, cam[None], field[:, :, 0].ravel(), field[:, :, 3].ravel(), np.zeros((1, 2), np.int64),
+                np.full((1, 2), 4, np.int64), np.zeros((1, 2), np.int64), np.ones(1, np.bool_), np.ones(1),
+                np.zeros((1, 3)), *box_arrays([_WARM_BOX]), 2.0, 3.0, 1.5, np.zeros(1), np.zeros(1), np.zeros(1), 1,
+                np.arange(pts.shape[0]), np.arange(pts.shape[1]))
     lookup(field, 0, 0, True, np.zeros(2), np.zeros(2))
     t = np.array([0.5])
     F, E, _ = beam_candidates(np.eye(3)[None], np.zeros((1, 3)), np.eye(3)[None], 0.01, 0.005, t, t, t)

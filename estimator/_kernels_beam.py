@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 
 from ._kernels import _cell, _fma32, _folds, _huber, _project, _robust, camera_params
-from ._kernels_boxes import HIDDEN_BEAM_COST, hidden_points
+from ._kernels_boxes import HIDDEN_BEAM_COST, box_origins, segment_hits
 
 
 @njit(cache=True, fastmath=False, inline="always")
@@ -26,8 +26,8 @@ def _lerp_flat(img, off, w, sx, sy, sx1, sy1, a, b):
 
 
 @njit(cache=True, fastmath=False)
-def best_totals(pts, n_edge, cams, sdf, flag, offsets, sizes, origins, has_ignore, weights, hidden, hidden_cost,
-                delta_out, delta_in, base, prior, extra, keep, order, perm):
+def best_totals(pts, n_edge, cams, sdf, flag, offsets, sizes, origins, has_ignore, weights, eyes, bcent, brot, bhalf,
+                hidden_cost, delta_out, delta_in, base, prior, extra, keep, order, perm):
     """The beam's totals (B G,) of its candidates (B G, s, 3) (candidate b G + g: parent b,
     grid angle g) over all views, as the NumPy reference (``reference.beam_edge_cost`` and
     ``search.beam_search``) sums them to float rounding, a view's losses in point order: per
@@ -44,13 +44,18 @@ def best_totals(pts, n_edge, cams, sdf, flag, offsets, sizes, origins, has_ignor
 
     Views k: camera ``cams[k]``, signed distance plane ``sdf[offsets[k, 0]:]`` and ignore
     flag plane ``flag[offsets[k, 1]:]`` (used only where ``has_ignore[k]``), each ``sizes[k]``
-    (h, w) with its top-left pixel at ``origins[k]``; ``hidden`` (V, B G, s): points a scene
-    box hides (cost ``hidden_cost`` each), or (0, 0, 0) without boxes. ``order``: the
+    (h, w) with its top-left pixel at ``origins[k]``, its camera's centre ``eyes[k]``; a point
+    the scene boxes (centres ``bcent`` (K, 3), rotations ``brot``, half edges ``bhalf``
+    shrunk by the surface margin; K = 0 without boxes) hide from a view costs
+    ``hidden_cost`` there (tested only for the points scored). ``order``: the
     candidates in the order they are tried (the sooner the best are, the more are cut short)."""
     C, s = pts.shape[0], pts.shape[1]
     G = prior.size
     V = weights.size
-    boxes = hidden.shape[0] > 0
+    boxes = bcent.shape[0] > 0
+    local = np.empty((V, bcent.shape[0], 3))
+    for k in range(V):
+        local[k] = box_origins(eyes[k], bcent, brot)
     out = np.full(C, np.inf)
     heap = np.full(max(keep, 1), np.inf)     # max-heap of the best ``keep`` totals so far
     loss = np.zeros((V, s))
@@ -67,7 +72,7 @@ def best_totals(pts, n_edge, cams, sdf, flag, offsets, sizes, origins, has_ignor
             is_edge = p < n_edge
             bound = lead + tail
             for k in range(V):
-                if boxes and hidden[k, c, p]:
+                if boxes and segment_hits(local[k], pts[c, p, 0], pts[c, p, 1], pts[c, p, 2], bcent, brot, bhalf):
                     val = hidden_cost
                 else:
                     cam = cams[k]
@@ -274,7 +279,8 @@ def map_labels(labels, lut, base):
 
 def pack_views(fields) -> tuple:
     """The views' beam-scoring inputs in :func:`best_totals`' form: (cams, sdf, flag,
-    offsets, sizes, origins, has_ignore, weights); made once per beam search."""
+    offsets, sizes, origins, has_ignore, weights, eyes, box centres, rotations, half edges);
+    made once per beam search."""
     sdf, flag, offsets, at_sdf, at_flag = [], [], [], 0, 0
     for f in fields:
         plane, ignore = f.planes
@@ -289,7 +295,13 @@ def pack_views(fields) -> tuple:
             np.concatenate(flag).astype(np.float32, copy=False) if flag else np.zeros(1, np.float32),
             np.array(offsets, np.int64), np.array([f.planes[0].shape for f in fields], np.int64),
             np.array([(f.x0, f.y0) for f in fields], np.int64), np.array([f.has_ignore for f in fields]),
-            np.array([f.weight for f in fields], float))
+            np.array([f.weight for f in fields], float),
+            np.array([f.camera.center for f in fields], float).reshape(-1, 3),
+            *(tuple(np.array(a, float, order="C") for a in fields[0].box_arrays) if fields and fields[0].boxes
+              else _NO_BOXES))
+
+
+_NO_BOXES = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
 
 
 def beam_totals(fields, packed: tuple, pts: np.ndarray, edge_count: int, perm: np.ndarray, base: np.ndarray,
@@ -301,10 +313,7 @@ def beam_totals(fields, packed: tuple, pts: np.ndarray, edge_count: int, perm: n
     all totals are computed (which of two equal totals ranks first is then the sort's
     choice on the whole array, as without the bound)."""
     flat = np.ascontiguousarray(pts, float).reshape(-1, pts.shape[-2], 3)
-    hidden = (np.stack([hidden_points(f, flat) for f in fields]) if fields and fields[0].boxes
-              else np.zeros((0, 0, 0), np.bool_))
-    cams, sdf, flag, offsets, sizes, origins, has_ignore, weights = packed
-    args = (flat, edge_count, cams, sdf, flag, offsets, sizes, origins, has_ignore, weights, hidden,
+    args = (flat, edge_count, *packed,
             HIDDEN_BEAM_COST, delta_out, delta_in, np.ascontiguousarray(base, float), prior, extra)
     # Tried in the order of what is known before scoring (the parent's score, the angles'
     # prior): the best come early and set a tight bound.

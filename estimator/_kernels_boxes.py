@@ -15,46 +15,62 @@ captures with the part in front, dev seeds 430000-460000, but on fresh seeds 490
 found a wrong shape of lower cost, 39 mm off, that the verdict passed: kept at 2.)"""
 
 
+@njit(cache=True, fastmath=False, inline="always")
+def box_origins(origin, centers, rotations):
+    """(K, 3): ``origin`` (3,) in each box's frame (:func:`segment_hits`' ``local``)."""
+    local = np.empty((centers.shape[0], 3))
+    for k in range(centers.shape[0]):
+        for a in range(3):
+            local[k, a] = ((origin[0] - centers[k, 0]) * rotations[k, 0, a]
+                           + (origin[1] - centers[k, 1]) * rotations[k, 1, a]
+                           + (origin[2] - centers[k, 2]) * rotations[k, 2, a])
+    return local
+
+
+@njit(cache=True, fastmath=False, inline="always")
+def segment_hits(local, x, y, z, centers, rotations, halves):
+    """Whether the open segment from an origin (``local``: it in each box's frame, from
+    :func:`box_origins`) to the point (x, y, z) crosses one of the boxes (see
+    :func:`segments_hit_boxes`)."""
+    for k in range(centers.shape[0]):
+        enter = -np.inf
+        leave = np.inf
+        miss = False
+        for a in range(3):
+            o = local[k, a]
+            p = ((x - centers[k, 0]) * rotations[k, 0, a] + (y - centers[k, 1]) * rotations[k, 1, a]
+                 + (z - centers[k, 2]) * rotations[k, 2, a])
+            h = halves[k, a]
+            if h > 0.0 and ((p > h and o > h) or (p < -h and o < -h)):
+                # Both ends beyond one face: the segment cannot cross the box (the slab
+                # test below finds the same, without its divisions; not for a box thinner
+                # than the surface margin, whose shrunk half is negative).
+                miss = True
+                break
+            d = p - o
+            if d == 0.0:
+                if abs(o) > h:
+                    miss = True
+                    break
+                continue
+            t1 = (-h - o) / d
+            t2 = (h - o) / d
+            enter = max(enter, min(t1, t2))
+            leave = min(leave, max(t1, t2))
+        if not miss and enter < leave and leave > 0.0 and enter < 1.0 - 1e-9:
+            return True
+    return False
+
+
 @njit(cache=True, fastmath=False)
 def segments_hit_boxes(origin, points, centers, rotations, halves):
     """occlusion.hidden compiled: (N,) whether the open segment ``origin`` (3,) -> each of
     ``points`` (N, 3) crosses one of the boxes (centres (K, 3), world_from_box rotations
     (K, 3, 3), half edges (K, 3) already shrunk by the surface margin)."""
-    n = points.shape[0]
-    out = np.zeros(n, np.bool_)
-    o = np.empty(3)
-    for k in range(centers.shape[0]):
-        for a in range(3):
-            o[a] = ((origin[0] - centers[k, 0]) * rotations[k, 0, a] + (origin[1] - centers[k, 1]) * rotations[k, 1, a]
-                    + (origin[2] - centers[k, 2]) * rotations[k, 2, a])
-        for i in range(n):
-            if out[i]:
-                continue
-            enter = -np.inf
-            leave = np.inf
-            miss = False
-            for a in range(3):
-                p = ((points[i, 0] - centers[k, 0]) * rotations[k, 0, a] + (points[i, 1] - centers[k, 1]) * rotations[k, 1, a]
-                     + (points[i, 2] - centers[k, 2]) * rotations[k, 2, a])
-                h = halves[k, a]
-                if h > 0.0 and ((p > h and o[a] > h) or (p < -h and o[a] < -h)):
-                    # Both ends beyond one face: the segment cannot cross the box (the slab
-                    # test below finds the same, without its divisions; not for a box thinner
-                    # than the surface margin, whose shrunk half is negative).
-                    miss = True
-                    break
-                d = p - o[a]
-                if d == 0.0:
-                    if abs(o[a]) > h:
-                        miss = True
-                        break
-                    continue
-                t1 = (-h - o[a]) / d
-                t2 = (h - o[a]) / d
-                enter = max(enter, min(t1, t2))
-                leave = min(leave, max(t1, t2))
-            if not miss and enter < leave and leave > 0.0 and enter < 1.0 - 1e-9:
-                out[i] = True
+    local = box_origins(origin, centers, rotations)
+    out = np.zeros(points.shape[0], np.bool_)
+    for i in range(points.shape[0]):
+        out[i] = segment_hits(local, points[i, 0], points[i, 1], points[i, 2], centers, rotations, halves)
     return out
 
 
