@@ -595,16 +595,28 @@ def base_offsets(views: Sequence[View], base_position: np.ndarray, observed: Seq
         col, row = v.camera.project(np.asarray(base_position, float)[None])[0] - (x0, y0)
         if not (np.isfinite(col) and np.isfinite(row)):
             continue
+        # Every count is within BASE_WINDOW_PX of the base: the crops' window around it (the
+        # erosion and the dilation read their neighbourhoods from margins around it, the
+        # same pixels as on the whole crop).
         h, w = o.shape
-        yy, xx = np.ogrid[0:h, 0:w]
+        wx0, wx1 = max(0, int(np.floor(col)) - BASE_WINDOW_PX), min(w, int(np.ceil(col)) + BASE_WINDOW_PX + 1)
+        wy0, wy1 = max(0, int(np.floor(row)) - BASE_WINDOW_PX), min(h, int(np.ceil(row)) + BASE_WINDOW_PX + 1)
+        if wx1 <= wx0 or wy1 <= wy0:
+            continue
+        yy, xx = np.ogrid[wy0:wy1, wx0:wx1]
         near = (xx - col) ** 2 + (yy - row) ** 2 <= BASE_WINDOW_PX ** 2
-        hid = (full.astype(bool) & ~m.astype(bool)).astype(np.uint8)
+        mb = m[wy0:wy1, wx0:wx1].astype(bool)
+        r = BASE_OCCLUDED_PX + 1
+        hy0, hy1, hx0, hx1 = max(0, wy0 - r), min(h, wy1 + r), max(0, wx0 - r), min(w, wx1 + r)
+        hid = (full[hy0:hy1, hx0:hx1].astype(bool) & ~m[hy0:hy1, hx0:hx1].astype(bool)).astype(np.uint8)
         if hid.any():
-            near &= ~cv2.dilate(hid, kb).astype(bool)
-        obs = o.astype(bool)
-        outline = int(np.count_nonzero(obs & ~cv2.erode(o.astype(np.uint8), k3).astype(bool) & near))
+            near &= ~cv2.dilate(hid, kb)[wy0 - hy0:wy1 - hy0, wx0 - hx0:wx1 - hx0].astype(bool)
+        ey0, ey1, ex0, ex1 = max(0, wy0 - 1), min(h, wy1 + 1), max(0, wx0 - 1), min(w, wx1 + 1)
+        eroded = cv2.erode(o[ey0:ey1, ex0:ex1].astype(np.uint8), k3)[wy0 - ey0:wy1 - ey0, wx0 - ex0:wx1 - ex0]
+        obs = o[wy0:wy1, wx0:wx1].astype(bool)
+        outline = int(np.count_nonzero(obs & ~eroded.astype(bool) & near))
         if outline >= BASE_MIN_OUTLINE_PX:
-            out[k] = np.count_nonzero((obs ^ m.astype(bool)) & near) / outline
+            out[k] = np.count_nonzero((obs ^ mb) & near) / outline
     return out
 
 

@@ -1141,6 +1141,46 @@ def test_base_offsets_measure_the_tape_at_its_base_clear_of_occluders():
     assert offset(dots, model) == 0.0
 
 
+def test_base_offsets_count_only_the_window_around_the_base():
+    """base_offsets reads only a window around the base's projection (its erosion and its
+    occluders' dilation from margins around it): the same numbers as the whole crop's
+    operations, on random masks with the base anywhere in, near or off the crop."""
+    from tapecell.estimator.verdict import BASE_MIN_OUTLINE_PX, BASE_OCCLUDED_PX, BASE_WINDOW_PX, base_offsets
+
+    def whole_crop(camera, base, o, m, full, x0, y0):
+        col, row = camera.project(base[None])[0] - (x0, y0)
+        h, w = o.shape
+        yy, xx = np.ogrid[0:h, 0:w]
+        near = (xx - col) ** 2 + (yy - row) ** 2 <= BASE_WINDOW_PX ** 2
+        hid = (full.astype(bool) & ~m.astype(bool)).astype(np.uint8)
+        size = 2 * BASE_OCCLUDED_PX + 1
+        if hid.any():
+            near &= ~cv2.dilate(hid, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))).astype(bool)
+        obs = o.astype(bool)
+        outline = np.count_nonzero(obs & ~cv2.erode(o, np.ones((3, 3), np.uint8)).astype(bool) & near)
+        return np.count_nonzero((obs ^ m.astype(bool)) & near) / outline if outline >= BASE_MIN_OUTLINE_PX else 0.0
+
+    rng = np.random.default_rng(7)
+    camera = make_capture(4300, SyntheticOptions(cameras=2)).views[0].camera
+    judged = 0
+    for _ in range(300):
+        h, w = rng.integers(20, 200, 2)
+        masks = [np.zeros((h, w), np.uint8) for _ in range(3)]
+        for m in masks:
+            for _ in range(rng.integers(1, 5)):
+                x, y = int(rng.integers(-20, w)), int(rng.integers(-20, h))
+                cv2.rectangle(m, (x, y), (x + int(rng.integers(2, 80)), y + int(rng.integers(2, 80))), 1, -1)
+        o, m, full = masks[0], masks[1], masks[2] | masks[1]
+        base = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05)])
+        u, v = camera.project(base[None])[0]
+        x0, y0 = int(u) - int(rng.integers(-30, w + 30)), int(v) - int(rng.integers(-30, h + 30))
+        got = base_offsets([View(camera, np.zeros((camera.height, camera.width), bool))], base, [o], [m], [full],
+                           [(x0, y0)])[0]
+        assert got == whole_crop(camera, base, o, m, full, x0, y0)
+        judged += got > 0
+    assert judged > 50
+
+
 def test_tape_going_behind_a_box_where_the_model_does_not():
     """verdict.box_cuts and unexplained_cut_px: the observed tape goes behind a box (its
     outline along the box's projected outline, the box across it); the model accounts for
