@@ -38,12 +38,13 @@ def _solve(A, b):
 
 
 @njit(cache=True, fastmath=False)
-def _evaluate(params, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight,
+def _evaluate(params, pull_at, pull_w, targets, pull_P, n, ns, pos, rot, lengths, width, pair, pair_w, edge, weight,
               segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff, vweight,
               prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra):
     """residuals.residuals(..., jacobian=True) of (k, 3n) params: (r (k, R), J (k, R, 3n), cost (k,));
     with ``pull_at`` >= 0, three rows more, last: chain point ``pull_at`` pulled to ``targets``
-    (k, 3) by ``pull_w`` [px/m] (solver.levenberg_marquardt's ``pull``)."""
+    (k, 3) by ``pull_w`` [px/m], its offset from them taken through ``pull_P`` (k, 3, 3)
+    (solver.levenberg_marquardt's ``pull``)."""
     k, N = params.shape
     angles = np.ascontiguousarray(params).reshape(k, n, 3)
     pts, Jp = chain_points(angles, pos, rot, lengths, width, pair, pair_w, True)
@@ -106,24 +107,30 @@ def _evaluate(params, pull_at, pull_w, targets, n, ns, pos, rot, lengths, width,
         for b in range(k):
             s = 0.0
             for a in range(3):
-                d = pull_w * (pts[b, pull_at, a] - targets[b, a])
+                d = 0.0
+                for c in range(3):
+                    d += pull_P[b, a, c] * (pts[b, pull_at, c] - targets[b, c])
+                d *= pull_w
                 res[b, at + a] = d
                 s += d * d
                 for j in range(N):
-                    jac[b, at + a, j] = pull_w * Jp[b, pull_at, a, j]
+                    g = 0.0
+                    for c in range(3):
+                        g += pull_P[b, a, c] * Jp[b, pull_at, c, j]
+                    jac[b, at + a, j] = pull_w * g
             cost[b] += 0.5 * s
     return res, jac, cost
 
 
 @njit(cache=True, fastmath=False)
-def levenberg_marquardt(params, iterations, rtol, r, J, cost, pull_at, pull_w, targets, n, ns, pos, rot, lengths,
+def levenberg_marquardt(params, iterations, rtol, r, J, cost, pull_at, pull_w, targets, pull_P, n, ns, pos, rot, lengths,
                         width, pair, pair_w, edge, weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s,
                         y0s, has_ign, outl, ooff, vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out,
                         delta_in, extra):
     """solver.levenberg_marquardt's loop on (B, P) ``params`` from their (r, J, cost). Returns
     (params, cost, r, J, iterations taken, active (iterations, B) bool, their params
     (iterations, B, P)) -- the last two the solver's log. ``pull_at``, ``pull_w``, ``targets``
-    (B, 3): :func:`_evaluate`'s pull (``pull_at`` -1: none)."""
+    (B, 3), ``pull_P`` (B, 3, 3): :func:`_evaluate`'s pull (``pull_at`` -1: none)."""
     B, N = params.shape
     na = 3 * n
     mu = np.full(B, 1e-3)
@@ -147,10 +154,12 @@ def levenberg_marquardt(params, iterations, rtol, r, J, cost, pull_at, pull_w, t
                 steps[i, d] = step[d]
                 trial[i, d] = params[b, d] + step[d]
         pulled = np.empty((m, 3))
+        through = np.empty((m, 3, 3))
         if pull_at >= 0:
             for i in range(m):
                 pulled[i] = targets[active[i]]
-        r2, J2, c2 = _evaluate(trial, pull_at, pull_w, pulled, n, ns, pos, rot, lengths, width, pair, pair_w, edge,
+                through[i] = pull_P[active[i]]
+        r2, J2, c2 = _evaluate(trial, pull_at, pull_w, pulled, through, n, ns, pos, rot, lengths, width, pair, pair_w, edge,
                                weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl,
                                ooff, vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in,
                                extra)
@@ -210,7 +219,7 @@ def _strip_evaluate(x, T, prior, n, ns, pos, rot, lengths, width, pair, pair_w, 
     """strip.Strip.residuals: the fine chain's residuals at angles T x, by x, and the strip's
     prior rows: (r (R + P,), J (R + P, P), cost)."""
     fine = np.ascontiguousarray(T @ x).reshape(1, T.shape[0])
-    r, J, cost = _evaluate(fine, -1, 0.0, np.zeros((1, 3)), n, ns, pos, rot, lengths, width, pair, pair_w, edge,
+    r, J, cost = _evaluate(fine, -1, 0.0, np.zeros((1, 3)), np.zeros((1, 3, 3)), n, ns, pos, rot, lengths, width, pair, pair_w, edge,
                            weight, segments, fold_of, cams, centers, fbuf, foff, fshape, x0s, y0s, has_ign, outl, ooff,
                            vweight, prior_px, pen_px, bcent, brot, bhalf, has_boxes, delta_out, delta_in, extra)
     p = prior @ x
@@ -360,20 +369,34 @@ def _args(chain, fields, cfg) -> tuple:
             float(cfg.delta_out_px), float(cfg.delta_in_px), extra)
 
 
+def pull_projections(along, count: int) -> np.ndarray:
+    """(count, 3, 3) what a pull pulls of each candidate's offset from its target: all of it
+    (identity) where ``along`` is None or a row of zeros, else its component along that
+    row (a unit vector: its outer product with itself)."""
+    P = np.zeros((count, 3, 3))
+    P[:] = np.eye(3)
+    if along is not None:
+        along = np.asarray(along, float).reshape(count, 3)
+        some = np.any(along != 0.0, axis=1)
+        P[some] = along[some, :, None] * along[some, None, :]
+    return P
+
+
 def run(chain, fields, params: np.ndarray, iterations: int, state, cfg, pull=None, log: list | None = None):
     """The compiled loop on ``params`` (B, P) from ``state`` (r, J, cost; copied) or None:
     (params, cost, r, J); each iteration's (active (k,), params (k, P)) appended to ``log``.
-    ``pull``: (chain point index, weight [px/m], targets (B, 3)) or None
-    (solver.levenberg_marquardt)."""
+    ``pull``: (chain point index, weight [px/m], targets (B, 3)[, along (B, 3) or None]) or
+    None (solver.levenberg_marquardt)."""
     args = _args(chain, fields, cfg)
     params = np.array(params, float, order="C")
+    B = len(params)
     if pull is None:
-        pulled = (-1, 0.0, np.zeros((len(params), 3)))
+        pulled = (-1, 0.0, np.zeros((B, 3)), np.zeros((B, 3, 3)))
     else:
-        at, weight, targets = pull
+        at, weight, targets, along = (tuple(pull) + (None,))[:4]
         if not 0 <= int(at) < chain.samples + 3 * (chain.n + 1):
             raise IndexError(f"pull: the chain has no point {at}")
-        pulled = (int(at), float(weight), np.array(targets, float, order="C").reshape(len(params), 3))
+        pulled = (int(at), float(weight), np.array(targets, float, order="C").reshape(B, 3), pull_projections(along, B))
     if state is None:
         r, J, cost = _evaluate(params, *pulled, *args)
     else:
@@ -426,8 +449,8 @@ def warm(cam: np.ndarray, field: np.ndarray, box_arrays: tuple, pair: np.ndarray
             np.zeros((2, 2)), np.array([0, 2]), np.ones(1), 1.0, 1.0, *box_arrays, True, 3.0, 1.5,
             3 * n + 3 * (n + 1))
     params = np.zeros((1, 3 * n))
-    r, J, cost = _evaluate(params, 0, 1.0, np.zeros((1, 3)), *args)
-    levenberg_marquardt(params, 1, 1e-3, r, J, cost, 0, 1.0, np.zeros((1, 3)), *args)
+    r, J, cost = _evaluate(params, 0, 1.0, np.zeros((1, 3)), np.zeros((1, 3, 3)), *args)
+    levenberg_marquardt(params, 1, 1e-3, r, J, cost, 0, 1.0, np.zeros((1, 3)), np.zeros((1, 3, 3)), *args)
     T = np.eye(3 * n)
     strip_levenberg_marquardt(np.zeros(3 * n), 1, 1e-3, T, np.eye(3 * n), *args)
     corner_levenberg_marquardt(np.zeros(3 * n), 1, 1e-3, T, np.zeros((3 * (n + 1), 3)), np.ones(3 * (n + 1)),

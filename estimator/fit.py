@@ -689,6 +689,24 @@ the development captures 1044000- and 1061000- ``ambiguous``, at 1.02 and 1.25 o
 costs.) An answer made ``ambiguous`` here is no longer an "ok" one the cameras' correction
 tries for a base met only roughly (``_calibration_suspect``): it is corrected only where
 its base is off by more than BASE_OFFSET_PX, as other unsure answers. Off: no probes."""
+DEPTH_PROBES_ALONG = True
+"""Each camera's probes are made twice: with the end pulled to the moved tip (its image in
+that camera held), and with only its depth along that camera's line of sight pulled there,
+where the views place it across the line. Fresh clean-1091054 (2 cameras) was "ok" 12.0 mm
+off, its noisy, calib, distorted and calib_rot captures too (11.9-13.3 mm; a wrong "ok" in
+each kind): the true shape explained the views better (0.020 against 0.030), and the
+probes pulled to a point 2 mm from its end held a body that costs 0.06 and went back to the
+answer when let go; pulled in depth alone, the probe along the second camera's line found
+its end 0.9 mm from the true one at 0.0205. Off: the point probes alone."""
+PROBES_AT_THE_ANSWER = True
+"""A probe is a rival of the answer only where it explains the views better than the answer's
+own chain and than every probe that went back to the answer's end (within DISTINCT_TIP_M):
+those are the answer's plate chain refitted, costed like the probes, where the answer's
+chain is the strip's and may cost more than a plate fit does. With the probes in depth
+alone (DEPTH_PROBES_ALONG), right answers whose strip chain cost 1.7-1.8 times their plate
+fit were made "ambiguous" by a probe 13-15 mm away costing less than the strip chain but
+more than the probes back at the answer (part-1091016 0.066 against 0.101 and 0.057,
+shell-c2-1088007 0.069 against 0.078 and 0.045)."""
 DEPTH_PROBE_M = 0.012
 """How far [m] the probes move the answer's tip along each camera's line of sight (more than
 DISTINCT_TIP_M: a shape that stays there is a distinct one)."""
@@ -704,16 +722,18 @@ def _depth_probes(capture: Capture, first: FirstStage, est: Estimate, config: Fi
     DEPTH_PROBE_M along each camera's line of sight, either way, then let go: [(eq.-11
     cost, angles (n, 3))], all refined together."""
     chain = first.chain
-    points = []
+    points, along = [], []
     for v in capture.views:
         ray = est.tip_position - v.camera.center
         ray = ray / max(float(np.linalg.norm(ray)), 1e-12)
-        points += [est.tip_position - DEPTH_PROBE_M * ray, est.tip_position + DEPTH_PROBE_M * ray]
+        for ways in ([np.zeros(3)], [ray]) if DEPTH_PROBES_ALONG else ([np.zeros(3)],):
+            points += [est.tip_position - DEPTH_PROBE_M * ray, est.tip_position + DEPTH_PROBE_M * ray]
+            along += ways * 2
     points = np.array(points)
     end = chain.samples + chain.n                  # P_C[n] among the chain's points
     start = np.repeat(np.asarray(est.angles, float).reshape(1, -1), len(points), axis=0)
     params, _, _ = levenberg_marquardt(chain, first.fields, start, DEPTH_PROBE_ITERATIONS, cfg=config,
-                                       pull=(end, DEPTH_PROBE_PX_PER_M, points))
+                                       pull=(end, DEPTH_PROBE_PX_PER_M, points, np.array(along)))
     params, _, _ = levenberg_marquardt(chain, first.fields, params, DEPTH_PROBE_ITERATIONS, cfg=config)
     angles = params.reshape(len(points), chain.n, 3)
     return list(zip(first.silhouette_costs(angles).tolist(), angles))
@@ -728,8 +748,16 @@ def _probed(capture: Capture, est: Estimate, first: FirstStage, config: FitConfi
     # The answer's chain costed as the probes are (the first stage's cleaned masks and
     # crops, which may differ from the answer's own by a few per cent on noisy masks).
     own = float(first.silhouette_costs(np.asarray(est.angles, float)[None])[0])
+    probes = _depth_probes(capture, first, est, config)
+    if PROBES_AT_THE_ANSWER:
+        # The probes let go back at the answer are its plate chain refitted, costed as the
+        # others are: where one explains the views better than the answer's own chain (the
+        # strip's, whose cost may be above a plate fit's), a probe must beat it too.
+        back = [cost for cost, angles in probes
+                if np.linalg.norm(first.chain.tips(angles)[0] - est.tip_position) <= DISTINCT_TIP_M]
+        own = min([own] + back)
     rivals = []
-    for cost, angles in sorted(_depth_probes(capture, first, est, config), key=lambda x: x[0]):
+    for cost, angles in sorted(probes, key=lambda x: x[0]):
         if cost >= own:
             break
         rival = _alternative(capture, cost, angles)

@@ -29,8 +29,9 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
     parameters (k, P)) -> (residuals (k, e), Jacobian (k, e, P)), rows appended to the
     views' (their half squared sum added to the cost, the returned cost and state included;
     a ``state`` passed in must hold them too). ``pull``: (index of one of the chain's points
-    (``Chain.points``), weight [px/m], targets (B, 3) [m]): three such rows, that point of each
-    candidate pulled to its target (not with ``extra``)."""
+    (``Chain.points``), weight [px/m], targets (B, 3) [m][, along (B, 3)]): three such rows,
+    that point of each candidate pulled to its target (not with ``extra``); with ``along``,
+    only its offset's component along that candidate's unit row (a row of zeros: all of it)."""
     compiled = cfg.compiled and _kernels_lm.usable(fields)
     if pull is not None:
         if extra is not None:
@@ -88,14 +89,17 @@ def levenberg_marquardt(chain: Chain, fields: list[Field], params: np.ndarray, i
     return params, cost, (r, J, cost)
 
 
-def _pull_rows(chain: Chain, at: int, weight: float, targets: np.ndarray):
+def _pull_rows(chain: Chain, at: int, weight: float, targets: np.ndarray, along: np.ndarray | None = None):
     """``pull`` as ``extra`` rows: (candidates (k,), their parameters (k, P)) -> (residuals
     (k, 3), Jacobian (k, 3, P))."""
     targets = np.asarray(targets, float)
+    P = _kernels_lm.pull_projections(along, len(targets))
 
     def rows(which: np.ndarray, params: np.ndarray):
         pts, J = chain.points(params.reshape(len(params), chain.n, 3), True)
-        return weight * (pts[:, at] - targets[which]), weight * J[:, at]
+        Pk = P[which]
+        return (weight * np.einsum("kac,kc->ka", Pk, pts[:, at] - targets[which]),
+                weight * np.einsum("kac,kcp->kap", Pk, J[:, at]))
 
     return rows
 

@@ -231,6 +231,26 @@ def test_compiled_levenberg_marquardt_matches_the_python_loop(part):
     assert ours[2][0].shape[1] == state[0].shape[1] + 3
     moved = np.linalg.norm(chain.tips(ours[0].reshape(5, chain.n, 3)) - targets, axis=1)
     assert np.all(moved < np.linalg.norm(chain.tips(params.reshape(5, chain.n, 3)) - targets, axis=1))
+    # Pulled along a direction only (the depth probes along a line of sight), a row of zeros
+    # pulling all of it: compiled and Python alike; the pulled candidates meet their targets'
+    # depth along the direction, not the targets.
+    along = rng.normal(size=(5, 3))
+    along /= np.linalg.norm(along, axis=1)[:, None]
+    along[4] = 0.0
+    logs = [], []
+    ours = levenberg_marquardt(chain, fields, params, 6, logs[0], pull=(end, 20000.0, targets, along))
+    python = levenberg_marquardt(chain, fields, params, 6, logs[1],
+                                 extra=_pull_rows(chain, end, 20000.0, targets, along))
+    assert _relative(ours[0], python[0]) < 1e-9 and np.allclose(ours[1], python[1], rtol=1e-9, atol=0)
+    assert _relative(ours[2][1], python[2][1]) < 1e-9 and len(logs[0]) == len(logs[1])
+    offset = chain.tips(ours[0].reshape(5, chain.n, 3)) - targets
+    before = chain.tips(params.reshape(5, chain.n, 3)) - targets
+    depth = np.abs(np.sum(offset * along, axis=1))[:4]
+    assert np.all(depth < 1e-3) and np.all(depth < np.abs(np.sum(before * along, axis=1))[:4])
+    assert np.linalg.norm(offset[:4], axis=1).max() > 3e-3     # across the direction: left to the views
+    assert np.linalg.norm(offset[4]) < np.linalg.norm(before[4])
+    whole = levenberg_marquardt(chain, fields, params[4:], 6, pull=(end, 20000.0, targets[4:]))
+    assert np.array_equal(ours[0][4], whole[0][0])
 
 
 def test_the_compiled_solver_takes_only_what_it_computes_alike(tmp_path):

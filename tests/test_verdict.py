@@ -1281,3 +1281,29 @@ def test_an_ok_answer_probed_in_depth_is_ambiguous_where_a_shape_the_searches_mi
     monkeypatch.setattr(fit, "DEPTH_PROBES", False)
     before = estimate(capture)
     assert before.verdict is Verdict.OK and _tip_mm(capture, before) > 5.0
+
+
+def test_depth_probes_pull_the_end_in_depth_alone_and_weigh_rivals_like_for_like(monkeypatch):
+    """Synthetic 1091054 (2 cameras, a fresh bench capture of 2026-11-28): "ok" 12 mm off, the
+    true shape explaining the views better. The probes pulled to a point held bodies that cost
+    more and went back to the answer; pulled in depth alone along the second camera's line of
+    sight (fit.DEPTH_PROBES_ALONG), one ends within 2 mm of the true end at two thirds of the
+    answer's cost: "ambiguous", that shape among the alternatives. Synthetic part capture
+    1091016 (2 cameras), "ok" 0.7 mm off: a probe 15 mm away costs less than the answer's
+    strip chain but more than the probes that went back to the answer (its plate chain
+    refitted, fit.PROBES_AT_THE_ANSWER): no rival; weighed against the strip chain alone, a
+    needless "ambiguous"."""
+    from tapecell.estimator import fit
+
+    capture = make_capture(1091054, SyntheticOptions(cameras=2))
+    est = estimate(capture)
+    assert est.verdict is Verdict.AMBIGUOUS, est.verdict_reason
+    assert min(np.linalg.norm(a.tip_position - capture.truth.points[-1]) for a in est.alternatives) < 0.002
+    part = make_capture(1091016, SyntheticOptions(cameras=2, part=True))
+    est = estimate(part)
+    assert est.verdict is Verdict.OK and _tip_mm(part, est) < 1.0, est.verdict_reason
+    monkeypatch.setattr(fit, "PROBES_AT_THE_ANSWER", False)
+    assert estimate(part).verdict is Verdict.AMBIGUOUS
+    monkeypatch.setattr(fit, "DEPTH_PROBES_ALONG", False)
+    before = estimate(capture)
+    assert before.verdict is Verdict.OK and _tip_mm(capture, before) > 10.0
