@@ -27,11 +27,7 @@ def screened(chain: Chain, fields: list[Field], starts: np.ndarray, cfg: FitConf
     another batch ends the same, bit for bit."""
     flat = starts.reshape(len(starts), -1)
     keys = [s.tobytes() for s in flat]
-    if cache is not None:
-        # A look's settings but the second look's own (its beam and hooks), which a screen
-        # does not read: a screen made under any other setting is not reused.
-        cache = cache.setdefault(dataclasses.replace(cfg, thorough_beam=DEFAULT.thorough_beam,
-                                                     fold_beam=DEFAULT.fold_beam, hook_bends=DEFAULT.hook_bends), {})
+    cache = _settings(cache, cfg)
     todo = [k for k, key in enumerate(keys) if cache is None or key not in cache]
     log: list = []
     if todo:
@@ -46,6 +42,16 @@ def screened(chain: Chain, fields: list[Field], starts: np.ndarray, cfg: FitConf
     rows = [cache[key] for key in keys]
     params, cost, r, J = (np.array([row[i] for row in rows]) for i in range(4))
     return params, cost, (r, J), _Iterates([row[4:] for row in rows], chain.n)
+
+
+def _settings(cache: dict | None, cfg: FitConfig) -> dict | None:
+    """The part of a capture's ``cache`` (:func:`screened`, :func:`refine`) made under
+    ``cfg``: a look's settings but the second look's own (its beam and hooks), which neither
+    reads; what was made under any other setting is not reused."""
+    if cache is None:
+        return None
+    return cache.setdefault(dataclasses.replace(cfg, thorough_beam=DEFAULT.thorough_beam, fold_beam=DEFAULT.fold_beam,
+                                                hook_bends=DEFAULT.hook_bends), {})
 
 
 class _Iterates:
@@ -68,7 +74,16 @@ def refine(chain: Chain, fields: list[Field], starts: np.ndarray, silhouette_cos
     chain as (eq.-11 cost, angles) to ``pool`` (the hypotheses the verdict weighs), with
     the best cfg.alternatives screened candidates whose tips lie more than DISTINCT_TIP_M from
     the refined ones' refined too (distinct shapes the robust cost ranked lower).
-    ``cache``: the capture's screens already made (:func:`screened`)."""
+    ``cache``: the capture's screens and refinements already made (:func:`screened`; the
+    second look refines again the starts the first look's wide search refined, the winner's
+    branches and curls: the same numbers, taken from it)."""
+    made = _settings(cache, cfg)
+    key = ("refined", starts.shape, np.ascontiguousarray(starts, float).tobytes())
+    if made is not None and key in made:
+        winner, steps, best_cost, refined = made[key]
+        if pool is not None:
+            pool += refined
+        return winner, list(steps), best_cost
     params, cost, (r, J), iterates = screened(chain, fields, starts, cfg, cache)
     # Screened by the robust cost (ranking all by eq. 11 was measured no better on the
     # samples and worse on sim captures); the silhouette cost (eq. 11) picks the winner.
@@ -101,9 +116,13 @@ def refine(chain: Chain, fields: list[Field], starts: np.ndarray, silhouette_cos
     refined = params[:, :3 * chain.n].reshape(-1, chain.n, 3)
     costs = silhouette_costs(refined)
     best = int(np.argmin(costs))
+    found = [(float(c), a) for c, a in zip(costs, refined)]
     if pool is not None:
-        pool += [(float(c), a) for c, a in zip(costs, refined)]
-    return refined[best], iterates[keep[best]] + trace(converge, best, chain.n), float(costs[best])
+        pool += found
+    steps = iterates[keep[best]] + trace(converge, best, chain.n)
+    if made is not None:
+        made[key] = (refined[best], steps, float(costs[best]), found)
+    return refined[best], list(steps), float(costs[best])
 
 
 def mirrors(angles: np.ndarray) -> np.ndarray:

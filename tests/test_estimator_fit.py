@@ -313,7 +313,7 @@ def test_a_view_missed_in_part_widens_the_search():
     assert errors(est.nodes, est.tip_rotation, c.truth, est.tip_position).tip_m < 0.002
 
 
-def test_a_start_screens_the_same_alone_in_a_batch_or_from_the_cache():
+def test_a_start_screens_the_same_alone_in_a_batch_or_from_the_cache(monkeypatch):
     """refine.screened: the batched solver treats each candidate on its own, so a start's
     screen (params, cost, residuals, Jacobian, iterates) is the same bit for bit alone, in a
     batch, or taken from a look's cache, and refine() with a cache answers as without."""
@@ -339,10 +339,23 @@ def test_a_start_screens_the_same_alone_in_a_batch_or_from_the_cache():
     def costs(angles):
         return CostEvaluator([f.target for f in first.fields], capture.scene).costs(chain.quads(angles))
 
-    plain = refine(chain, first.fields, starts, costs, None, DEFAULT)
-    cached = refine(chain, first.fields, starts, costs, None, DEFAULT, cache)
-    assert np.array_equal(plain[0], cached[0]) and plain[2] == cached[2]
-    assert len(plain[1]) == len(cached[1]) and all(np.array_equal(a, b) for a, b in zip(plain[1], cached[1]))
+    plain_pool, cached_pool, again_pool = [], [], []
+    plain = refine(chain, first.fields, starts, costs, plain_pool, DEFAULT)
+    cached = refine(chain, first.fields, starts, costs, cached_pool, DEFAULT, cache)
+    # The same starts refined again (the second look's curls after the first look's): taken
+    # from the cache, the same answer and the same chains added to the hypotheses.
+    import tapecell.estimator.refine as refine_module
+    solves = []
+    real = refine_module.levenberg_marquardt
+    monkeypatch.setattr(refine_module, "levenberg_marquardt", lambda *a, **k: solves.append(1) or real(*a, **k))
+    again = refine(chain, first.fields, starts, costs, again_pool, DEFAULT, cache)
+    assert not solves
+    for got in (cached, again):
+        assert np.array_equal(plain[0], got[0]) and plain[2] == got[2]
+        assert len(plain[1]) == len(got[1]) and all(np.array_equal(a, b) for a, b in zip(plain[1], got[1]))
+    for pool in (cached_pool, again_pool):
+        assert [c for c, _ in pool] == [c for c, _ in plain_pool]
+        assert all(np.array_equal(a, b) for (_, a), (_, b) in zip(pool, plain_pool))
 
 
 def test_steady_curls_bend_every_joint_evenly_with_and_without_the_first():
