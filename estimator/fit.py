@@ -676,9 +676,10 @@ DEPTH_PROBES = True
 end-on, a view explained only roughly, an end located as a hook across its tip edge, an
 unsure first answer) is probed in depth before it is given: the plate chain refitted from
 it with its end pulled to its tip moved DEPTH_PROBE_M along each camera's line of sight to
-it, either way, then let go (:func:`_depth_probes`). A probe that ends more than
-DISTINCT_TIP_M from the answer and explains the views better (a lower eq.-11 cost, the
-answer's chain costed on the same masks) is a shape the searches missed: the answer is
+it, either way (its depth alone: DEPTH_PROBES_ALONG), then let go (:func:`_depth_probes`).
+A probe that ends more than DISTINCT_TIP_M from the answer and explains the views better
+(a lower eq.-11 cost than the answer's chain costed on the same masks, and than the probes
+that went back to the answer: PROBES_AT_THE_ANSWER) is a shape the searches missed: the answer is
 ``ambiguous``, and the probe becomes the answer where the chain the estimator outputs from
 it explains them better too (:func:`_cheapest_first`). Fresh shell-c2-1061012 (2 cameras,
 an arch whose end hangs beside its base) was "ok" 16.3 mm off: a probe along one camera's
@@ -690,14 +691,17 @@ costs.) An answer made ``ambiguous`` here is no longer an "ok" one the cameras' 
 tries for a base met only roughly (``_calibration_suspect``): it is corrected only where
 its base is off by more than BASE_OFFSET_PX, as other unsure answers. Off: no probes."""
 DEPTH_PROBES_ALONG = True
-"""Each camera's probes are made twice: with the end pulled to the moved tip (its image in
-that camera held), and with only its depth along that camera's line of sight pulled there,
-where the views place it across the line. Fresh clean-1091054 (2 cameras) was "ok" 12.0 mm
-off, its noisy, calib, distorted and calib_rot captures too (11.9-13.3 mm; a wrong "ok" in
-each kind): the true shape explained the views better (0.020 against 0.030), and the
-probes pulled to a point 2 mm from its end held a body that costs 0.06 and went back to the
-answer when let go; pulled in depth alone, the probe along the second camera's line found
-its end 0.9 mm from the true one at 0.0205. Off: the point probes alone."""
+"""The probes pull only the end's depth along each camera's line of sight to the moved tip,
+and the views place it across the line; off: the end pulled to the moved tip itself (its
+image in that camera held). Fresh clean-1091054 (2 cameras) was "ok" 12.0 mm off, and its
+calib, distorted and calib_rot captures too (11.9-12.9 mm, a wrong "ok" in each kind): the
+true shape explained the views better (0.020 against 0.030), but the probes pulled to a
+point 2 mm from its end held bodies that cost 0.06 and went back to the answer when let
+go; pulled in depth alone, the probe along the second camera's line ended 0.9 mm from the
+true end at 0.0205. Pulled in depth alone, the probes find the shapes the point probes
+found too (shell-c2-1061012 and part-1052042 ambiguous, 2.0 and 14.8 mm off, where the
+point probes made them 3.4 and 21.5 mm off), and both kinds together (twice the probes)
+gave the same answers as these alone on 982 development captures (1088000-, 1091000-)."""
 PROBES_AT_THE_ANSWER = True
 """A probe is a rival of the answer only where it explains the views better than the answer's
 own chain and than every probe that went back to the answer's end (within DISTINCT_TIP_M):
@@ -719,16 +723,16 @@ DEPTH_PROBE_ITERATIONS = 8
 
 def _depth_probes(capture: Capture, first: FirstStage, est: Estimate, config: FitConfig) -> list:
     """The plate chains refitted from ``est``'s with their ends pulled to its tip moved
-    DEPTH_PROBE_M along each camera's line of sight, either way, then let go: [(eq.-11
-    cost, angles (n, 3))], all refined together."""
+    DEPTH_PROBE_M along each camera's line of sight, either way (in depth along that line
+    alone: DEPTH_PROBES_ALONG), then let go: [(eq.-11 cost, angles (n, 3))], all refined
+    together."""
     chain = first.chain
     points, along = [], []
     for v in capture.views:
         ray = est.tip_position - v.camera.center
         ray = ray / max(float(np.linalg.norm(ray)), 1e-12)
-        for ways in ([np.zeros(3)], [ray]) if DEPTH_PROBES_ALONG else ([np.zeros(3)],):
-            points += [est.tip_position - DEPTH_PROBE_M * ray, est.tip_position + DEPTH_PROBE_M * ray]
-            along += ways * 2
+        points += [est.tip_position - DEPTH_PROBE_M * ray, est.tip_position + DEPTH_PROBE_M * ray]
+        along += [ray if DEPTH_PROBES_ALONG else np.zeros(3)] * 2
     points = np.array(points)
     end = chain.samples + chain.n                  # P_C[n] among the chain's points
     start = np.repeat(np.asarray(est.angles, float).reshape(1, -1), len(points), axis=0)
