@@ -536,7 +536,10 @@ def _recalibrated(capture: Capture, est: Estimate, config: FitConfig, fields: li
     them far better (``recalibrate.OK_MIN_GAIN``) and meets the base to within
     ``recalibrate.OK_BASE_PX`` (where it explains them far better but is not "ok", ``est`` made
     "ambiguous" with the corrected shape as an alternative); else ``est``. A correction beyond
-    ``recalibrate.MAX_DEG`` for any camera is not taken. The time of both counts. The answer's nodes and tip are in
+    ``recalibrate.MAX_DEG`` for any camera is not taken, nor one whose answer leaves a view
+    explained to more than ``recalibrate.CORRECTED_OFFSET_PX`` or whose shape the cameras as
+    given explain nearly as well (``recalibrate.SUPPORT``: the gain is then the second
+    search's, not the correction's). The time of both counts. The answer's nodes and tip are in
     the world frame, which the tape's base anchors; its views' costs and offsets are on the
     corrected cameras. ``fields``: the capture's views as the first look prepared them."""
     start = time.perf_counter()
@@ -568,6 +571,14 @@ def _recalibrated(capture: Capture, est: Estimate, config: FitConfig, fields: li
                                    time_s=est.time_s + time.perf_counter() - start)
     if was_ok and not again.base_offset_px <= recalibrate.OK_BASE_PX:
         return dataclasses.replace(est, time_s=time_s)   # the corrected cameras do not meet the base better
+    if not bool(np.max(np.asarray(again.view_offsets_px, float)) <= recalibrate.CORRECTED_OFFSET_PX):
+        return dataclasses.replace(est, time_s=time_s)   # a view still explained only roughly
+    # The gain must be the corrected cameras': the corrected answer's shape on the cameras as
+    # given, costed likewise (recalibrate.SUPPORT).
+    _, given_costs, _ = _costed(capture, again.angles)
+    time_s = est.time_s + time.perf_counter() - start
+    if not again.cost <= recalibrate.SUPPORT * combine(given_costs):
+        return dataclasses.replace(est, time_s=time_s)
     given = (f"its base {est.base_offset_px:.1f} px" if was_ok
              else f"its worst view {float(np.max(est.view_offsets_px)):.1f} px")
     # (Not the first answer's reason: its words are read elsewhere, cell.probe.end_measurable.)

@@ -1283,6 +1283,29 @@ def test_an_ok_answer_probed_in_depth_is_ambiguous_where_a_shape_the_searches_mi
     assert before.verdict is Verdict.OK and _tip_mm(capture, before) > 5.0
 
 
+def test_a_corrected_answer_stands_only_where_the_correction_explains_the_gain(monkeypatch):
+    """Shell tape 1095002 (2 cameras, calibrated; a fresh bench capture of 2026-11-28): the
+    first answer is poor_fit 10.4 mm off; the cameras' correction, 0.08 and 0.14 deg, and a
+    second search found a shape 11.6 mm off that explains the corrected views at 0.71 of the
+    first answer's cost, "ok". That shape explains the views as given nearly as well (the
+    corrected cameras' cost 0.77 of it: recalibrate.SUPPORT) and leaves a view at 2.2 px
+    (recalibrate.CORRECTED_OFFSET_PX): the first answer stands, by either rule alone."""
+    from tapecell.estimator import fit, load_capture, recalibrate
+
+    capture = load_capture(DATA / "sim-shell-c2-1095002")
+    est = estimate(capture)
+    assert est.verdict is Verdict.POOR_FIT and "turned" not in est.verdict_reason, est.verdict_reason
+    monkeypatch.setattr(recalibrate, "SUPPORT", 0.9)
+    assert estimate(capture).verdict is Verdict.POOR_FIT
+    monkeypatch.setattr(recalibrate, "SUPPORT", 0.7)
+    monkeypatch.setattr(recalibrate, "CORRECTED_OFFSET_PX", 2.5)
+    assert estimate(capture).verdict is Verdict.POOR_FIT
+    monkeypatch.setattr(recalibrate, "SUPPORT", 0.9)
+    before = estimate(capture)
+    assert before.verdict is Verdict.OK and _tip_mm(capture, before) > 10.0
+    assert "turned from their calibration" in before.verdict_reason
+
+
 def test_depth_probes_pull_the_end_in_depth_alone_and_weigh_rivals_like_for_like(monkeypatch):
     """Synthetic 1091054 (2 cameras, a fresh bench capture of 2026-11-28): "ok" 12 mm off, the
     true shape explaining the views better. The probes pulled to a point held bodies that cost
