@@ -712,7 +712,8 @@ go; pulled in depth alone, the probe along the second camera's line ended 0.9 mm
 true end at 0.0205. Pulled in depth alone, the probes find the shapes the point probes
 found too (shell-c2-1061012 and part-1052042 ambiguous, 2.0 and 14.8 mm off, where the
 point probes made them 3.4 and 21.5 mm off), and both kinds together (twice the probes)
-gave the same answers as these alone on 982 development captures (1088000-, 1091000-)."""
+gave the same answers as these alone on 1,957 development captures (1078000-, 1084000-,
+1088000-, 1091000-)."""
 PROBES_AT_THE_ANSWER = True
 """A probe is a rival of the answer only where it explains the views better than the answer's
 own chain and than every probe that went back to the answer's end (within DISTINCT_TIP_M):
