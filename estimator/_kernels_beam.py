@@ -11,7 +11,7 @@ import numpy as np
 from numba import njit
 
 from ._kernels import _cell, _fma32, _folds, _huber, _project, _robust, camera_params
-from ._kernels_boxes import HIDDEN_BEAM_COST, box_origins, segment_hits
+from ._kernels_boxes import HIDDEN_BEAM_COST, box_origins, segment_hits, views_box_arrays
 
 
 @njit(cache=True, fastmath=False, inline="always")
@@ -296,12 +296,7 @@ def pack_views(fields) -> tuple:
             np.array(offsets, np.int64), np.array([f.planes[0].shape for f in fields], np.int64),
             np.array([(f.x0, f.y0) for f in fields], np.int64), np.array([f.has_ignore for f in fields]),
             np.array([f.weight for f in fields], float),
-            np.array([f.camera.center for f in fields], float).reshape(-1, 3),
-            *(tuple(np.array(a, float, order="C") for a in fields[0].box_arrays) if fields and fields[0].boxes
-              else _NO_BOXES))
-
-
-_NO_BOXES = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
+            np.array([f.camera.center for f in fields], float).reshape(-1, 3), *views_box_arrays(fields))
 
 
 def beam_totals(fields, packed: tuple, pts: np.ndarray, edge_count: int, perm: np.ndarray, base: np.ndarray,

@@ -109,6 +109,19 @@ def box_arrays(boxes) -> tuple:
             np.array([b.half - SURFACE_M for b in boxes], float).reshape(-1, 3))
 
 
+NO_BOXES = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
+"""``box_arrays`` of no boxes."""
+
+
+def views_box_arrays(fields) -> tuple:
+    """The scene boxes the compiled kernels take for all of ``fields`` (a capture's views share
+    them): the first view's ``box_arrays`` as writable C-order float arrays (a read-only one
+    is another type for numba), or NO_BOXES."""
+    if not fields or not fields[0].boxes:
+        return NO_BOXES
+    return tuple(np.array(a, float, order="C") for a in fields[0].box_arrays)
+
+
 def hidden_points(field, pts: np.ndarray) -> np.ndarray:
     """(B, s) which of the sample points (B, s, 3) the view's scene boxes hide from it."""
     if not field.boxes:

@@ -25,7 +25,7 @@ import numpy as np
 from numba import njit
 
 from ._kernels import _chain_arrays, camera_params, chain_points, view_residuals
-from ._kernels_boxes import box_penetration, segments_hit_boxes
+from ._kernels_boxes import box_penetration, segments_hit_boxes, views_box_arrays
 
 
 @njit(cache=True, fastmath=False)
@@ -336,8 +336,7 @@ class Packed:
         # Python way (:func:`usable`).
         ids = [id(b) for b in boxes]
         self.same_boxes = all([id(b) for b in f.boxes] == ids for f in fields)
-        self.boxes = tuple(np.ascontiguousarray(a, float) for a in fields[0].box_arrays) if boxes else (
-            np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)))
+        self.boxes = views_box_arrays(fields)
 
 
 _packed: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()

@@ -769,8 +769,9 @@ def _probed(capture: Capture, est: Estimate, first: FirstStage, config: FitConfi
         # The probes let go back at the answer are its plate chain refitted, costed as the
         # others are: where one explains the views better than the answer's own chain (the
         # strip's, whose cost may be above a plate fit's), a probe must beat it too.
-        back = [cost for cost, angles in probes
-                if np.linalg.norm(first.chain.tips(angles)[0] - est.tip_position) <= DISTINCT_TIP_M]
+        ends = first.chain.tips(np.array([angles for _, angles in probes]))
+        back = [cost for (cost, _), end in zip(probes, ends)
+                if np.linalg.norm(end - est.tip_position) <= DISTINCT_TIP_M]
         own = min([own] + back)
     rivals = []
     for cost, angles in sorted(probes, key=lambda x: x[0]):

@@ -78,7 +78,7 @@ def refine(chain: Chain, fields: list[Field], starts: np.ndarray, silhouette_cos
     second look refines again the starts the first look's wide search refined, the winner's
     branches and curls: the same numbers, taken from it)."""
     made = _settings(cache, cfg)
-    key = ("refined", starts.shape, np.ascontiguousarray(starts, float).tobytes())
+    key = None if made is None else ("refined", starts.shape, np.ascontiguousarray(starts, float).tobytes())
     if made is not None and key in made:
         winner, steps, best_cost, refined = made[key]
         if pool is not None:

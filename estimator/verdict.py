@@ -603,21 +603,30 @@ def base_offsets(views: Sequence[View], base_position: np.ndarray, observed: Seq
         wy0, wy1 = max(0, int(np.floor(row)) - BASE_WINDOW_PX), min(h, int(np.ceil(row)) + BASE_WINDOW_PX + 1)
         if wx1 <= wx0 or wy1 <= wy0:
             continue
-        yy, xx = np.ogrid[wy0:wy1, wx0:wx1]
+        window = (slice(wy0, wy1), slice(wx0, wx1))
+        yy, xx = np.ogrid[window]
         near = (xx - col) ** 2 + (yy - row) ** 2 <= BASE_WINDOW_PX ** 2
-        mb = m[wy0:wy1, wx0:wx1].astype(bool)
-        r = BASE_OCCLUDED_PX + 1
-        hy0, hy1, hx0, hx1 = max(0, wy0 - r), min(h, wy1 + r), max(0, wx0 - r), min(w, wx1 + r)
-        hid = (full[hy0:hy1, hx0:hx1].astype(bool) & ~m[hy0:hy1, hx0:hx1].astype(bool)).astype(np.uint8)
+        around, inner = _margin(window, BASE_OCCLUDED_PX + 1, (h, w))
+        hid = (full[around].astype(bool) & ~m[around].astype(bool)).astype(np.uint8)
         if hid.any():
-            near &= ~cv2.dilate(hid, kb)[wy0 - hy0:wy1 - hy0, wx0 - hx0:wx1 - hx0].astype(bool)
-        ey0, ey1, ex0, ex1 = max(0, wy0 - 1), min(h, wy1 + 1), max(0, wx0 - 1), min(w, wx1 + 1)
-        eroded = cv2.erode(o[ey0:ey1, ex0:ex1].astype(np.uint8), k3)[wy0 - ey0:wy1 - ey0, wx0 - ex0:wx1 - ex0]
-        obs = o[wy0:wy1, wx0:wx1].astype(bool)
+            near &= ~cv2.dilate(hid, kb)[inner].astype(bool)
+        around, inner = _margin(window, 1, (h, w))
+        eroded = cv2.erode(o[around].astype(np.uint8), k3)[inner]
+        obs = o[window].astype(bool)
         outline = int(np.count_nonzero(obs & ~eroded.astype(bool) & near))
         if outline >= BASE_MIN_OUTLINE_PX:
-            out[k] = np.count_nonzero((obs ^ mb) & near) / outline
+            out[k] = np.count_nonzero((obs ^ m[window].astype(bool)) & near) / outline
     return out
+
+
+def _margin(window: tuple[slice, slice], margin: int, shape: tuple[int, int]) -> tuple[tuple, tuple]:
+    """The crop ``window`` (rows, columns) grown by ``margin`` px within an array of
+    ``shape``, and the window's place in it: a filter run on the grown crop gives, at the
+    window's pixels, what it gives on the whole array."""
+    (rows, cols), (h, w) = window, shape
+    y0, x0 = max(0, rows.start - margin), max(0, cols.start - margin)
+    grown = (slice(y0, min(h, rows.stop + margin)), slice(x0, min(w, cols.stop + margin)))
+    return grown, (slice(rows.start - y0, rows.stop - y0), slice(cols.start - x0, cols.stop - x0))
 
 
 def end_offsets(views: Sequence[View], observed: Sequence[np.ndarray], models: Sequence[np.ndarray],
